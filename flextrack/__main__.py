@@ -1,0 +1,5 @@
+import sys
+
+from flextrack.cli import main
+
+sys.exit(main())

@@ -1,0 +1,61 @@
+"""The `flextrack` command: a thin dispatcher over the libraries.
+
+Each subcommand lives in its own module, which exposes `add_arguments(parser)` and
+`run(args) -> int`; it is imported only when chosen, so `flextrack --help` stays fast and a
+light install (client SDK only) can still run the commands it has the dependencies for.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("runners.demo", "start a backend, track a simulated sequence live over gRPC, print errors, write plots"),
+    "serve": ("service.cli", "run the PoseEstimation gRPC server"),
+    "simulate": ("simulator.cli", "generate a synthetic sequence folder (trajectory, IMU, ground truth, frames)"),
+    "convert-euroc": ("simulator.euroc_cli", "turn a EuRoC IMU + ground-truth recording into a sequence folder"),
+    "track": ("runners.track_cli", "replay a sequence folder through the tracker and report its errors"),
+    "experiment": ("experiments.cli", "rerun the paper's experiments: table2, ablation, timing, euroc"),
+    "train": ("training.cli", "train the PVNet-style network on rendered views and export it to ONNX"),
+    "bench": ("benchmarks.cli", "benchmarks that print figures: service throughput, rendering, estimators"),
+    "loadtest": ("loadtest.cli", "load-test a running service with many Track streams"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="flextrack",
+        description="Flexible-frame-rate vision-aided inertial 6DoF object tracking (client SDK, gRPC backend, "
+        "simulator and experiments). Run `flextrack COMMAND --help` for a command's options.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (_, help_text) in COMMANDS.items():
+        sub.add_parser(name, help=help_text, add_help=False)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    if not argv or argv[0] not in COMMANDS:
+        parser.parse_args(argv or ["--help"])
+        return 2
+    name, rest = argv[0], argv[1:]
+    module_name, help_text = COMMANDS[name]
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        print(f"flextrack {name}: cannot load {module_name} ({exc}); install the extra it needs, "
+              f"e.g. pip install -e '.[dev]' (make setup)", file=sys.stderr)
+        return 2
+    cmd_parser = argparse.ArgumentParser(prog=f"flextrack {name}", description=help_text,
+                                         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    module.add_arguments(cmd_parser)
+    return int(module.run(cmd_parser.parse_args(rest)) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,30 @@
+"""Pose error metrics as the BOP toolkit defines them (SI units in, mm/deg/px out where named)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from flextrack.geometry import se3, so3
+from flextrack.geometry.camera import PinholeCamera, project_model
+
+
+def proj_px(T_est: np.ndarray, T_gt: np.ndarray, camera: PinholeCamera, points_O: np.ndarray) -> float:
+    """Mean 2D distance in px between model points projected with the estimated and true pose."""
+    d = project_model(camera, T_est, points_O) - project_model(camera, T_gt, points_O)
+    return float(np.mean(np.linalg.norm(d, axis=1)))
+
+
+def te_mm(T_est: np.ndarray, T_gt: np.ndarray) -> float:
+    """Translation error in mm."""
+    return float(np.linalg.norm(T_est[:3, 3] - T_gt[:3, 3]) * 1000.0)
+
+
+def re_deg(T_est: np.ndarray, T_gt: np.ndarray) -> float:
+    """Rotation error: angle of R_est R_gt^T in degrees."""
+    return so3.angle_deg(T_est[:3, :3] @ T_gt[:3, :3].T)
+
+
+def add_m(T_est: np.ndarray, T_gt: np.ndarray, points_O: np.ndarray) -> float:
+    """ADD: mean 3D distance between model points under both poses, in metres."""
+    d = se3.transform_points(T_est, points_O) - se3.transform_points(T_gt, points_O)
+    return float(np.mean(np.linalg.norm(d, axis=1)))

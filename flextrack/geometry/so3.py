@@ -1,0 +1,97 @@
+"""Rotations: Rodrigues exp/log, quaternions (always w, x, y, z order here) and slerp."""
+
+from __future__ import annotations
+
+import numpy as np
+
+_SMALL_ANGLE = 1e-8
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """3x3 matrix [v]x such that skew(v) @ u == cross(v, u)."""
+    x, y, z = v
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def exp(phi: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the rotation vector phi (Rodrigues' formula, the paper's Eq. 2)."""
+    phi = np.asarray(phi, dtype=float)
+    angle = float(np.linalg.norm(phi))
+    B = skew(phi)
+    if angle < _SMALL_ANGLE:
+        return np.eye(3) + B + 0.5 * B @ B
+    return (
+        np.eye(3)
+        + (np.sin(angle) / angle) * B
+        + ((1.0 - np.cos(angle)) / angle**2) * (B @ B)
+    )
+
+
+def log(R: np.ndarray) -> np.ndarray:
+    """Rotation vector of R (inverse of `exp`), robust near 0 and pi."""
+    return rotvec_from_quat(quat_from_matrix(R))
+
+
+def angle_deg(R: np.ndarray) -> float:
+    """Rotation angle of R in degrees (BOP's `re` when R = R_est @ R_gt.T)."""
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def quat_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) with w >= 0 of the rotation matrix R (Shepperd's method)."""
+    R = np.asarray(R, dtype=float)
+    tr = np.trace(R)
+    candidates = np.array([tr, R[0, 0], R[1, 1], R[2, 2]])
+    i = int(np.argmax(candidates))
+    if i == 0:
+        s = 2.0 * np.sqrt(1.0 + tr)
+        q = np.array([0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s])
+    elif i == 1:
+        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = np.array([(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s])
+    elif i == 2:
+        s = 2.0 * np.sqrt(1.0 - R[0, 0] + R[1, 1] - R[2, 2])
+        q = np.array([(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s])
+    else:
+        s = 2.0 * np.sqrt(1.0 - R[0, 0] - R[1, 1] + R[2, 2])
+        q = np.array([(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s])
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+def matrix_from_quat(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the quaternion q = (w, x, y, z); q need not be normalised."""
+    w, x, y, z = np.asarray(q, dtype=float) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def rotvec_from_quat(q: np.ndarray) -> np.ndarray:
+    """Rotation vector of the unit quaternion q = (w, x, y, z)."""
+    q = np.asarray(q, dtype=float)
+    q = q if q[0] >= 0 else -q
+    v = q[1:]
+    s = float(np.linalg.norm(v))
+    if s < _SMALL_ANGLE:
+        return 2.0 * v / max(q[0], _SMALL_ANGLE)
+    return 2.0 * np.arctan2(s, q[0]) * v / s
+
+
+def slerp(q0: np.ndarray, q1: np.ndarray, s: float) -> np.ndarray:
+    """Spherical interpolation from q0 (s=0) to q1 (s=1), shortest path, (w, x, y, z)."""
+    q0 = np.asarray(q0, dtype=float)
+    q1 = np.asarray(q1, dtype=float)
+    d = float(np.dot(q0, q1))
+    if d < 0.0:
+        q1, d = -q1, -d
+    if d > 0.9995:
+        q = q0 + s * (q1 - q0)
+        return q / np.linalg.norm(q)
+    theta = np.arccos(d)
+    return (np.sin((1 - s) * theta) * q0 + np.sin(s * theta) * q1) / np.sin(theta)
