@@ -27,9 +27,15 @@ def _matrix(node) -> np.ndarray:
     return np.asarray(node, dtype=float)
 
 
+def _load_yaml(path: str | Path) -> dict:
+    """EuRoC files start with OpenCV's `%YAML:1.0` line, which is not valid YAML: drop it."""
+    text = "\n".join(line for line in Path(path).read_text().splitlines() if not line.startswith("%YAML"))
+    return yaml.safe_load(text)
+
+
 def read_imu_sensor(path: str | Path) -> tuple[ImuNoise, np.ndarray]:
     """(noise model, T_BS) of an IMU sensor.yaml; T_BS is identity when absent."""
-    doc = yaml.safe_load(Path(path).read_text())
+    doc = _load_yaml(path)
     noise = ImuNoise(
         float(doc["gyroscope_noise_density"]),
         float(doc["gyroscope_random_walk"]),
@@ -68,7 +74,7 @@ class CameraCalibration:
 
 
 def read_camera_sensor(path: str | Path) -> CameraCalibration:
-    doc = yaml.safe_load(Path(path).read_text())
+    doc = _load_yaml(path)
     fu, fv, cu, cv = (float(x) for x in doc["intrinsics"])
     w, h = (int(x) for x in doc["resolution"])
     K = np.array([[fu, 0, cu], [0, fv, cv], [0, 0, 1.0]])
