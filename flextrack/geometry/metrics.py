@@ -28,3 +28,16 @@ def add_m(T_est: np.ndarray, T_gt: np.ndarray, points_O: np.ndarray) -> float:
     """ADD: mean 3D distance between model points under both poses, in metres."""
     d = se3.transform_points(T_est, points_O) - se3.transform_points(T_gt, points_O)
     return float(np.mean(np.linalg.norm(d, axis=1)))
+
+
+def proj_px_many(T_est: np.ndarray, T_gt: np.ndarray, camera: PinholeCamera, points_O: np.ndarray,
+                 chunk: int = 256) -> np.ndarray:
+    """`proj_px` for (F, 4, 4) pose pairs at once, (F,) px; a whole run in one numpy pass."""
+    out = np.empty(len(T_est))
+    for s in range(0, len(T_est), chunk):
+        uv = []
+        for T in (T_est[s:s + chunk], T_gt[s:s + chunk]):
+            X = np.einsum("fij,nj->fni", T[:, :3, :3], points_O) + T[:, None, :3, 3]
+            uv.append(camera.project(X.reshape(-1, 3)).reshape(len(X), -1, 2))
+        out[s:s + chunk] = np.linalg.norm(uv[0] - uv[1], axis=-1).mean(axis=1)
+    return out

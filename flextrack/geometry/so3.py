@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 _SMALL_ANGLE = 1e-8
@@ -39,25 +41,30 @@ def angle_deg(R: np.ndarray) -> float:
 
 
 def quat_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) with w >= 0 of the rotation matrix R (Shepperd's method)."""
-    R = np.asarray(R, dtype=float)
-    tr = np.trace(R)
-    candidates = np.array([tr, R[0, 0], R[1, 1], R[2, 2]])
-    i = int(np.argmax(candidates))
+    """Unit quaternion (w, x, y, z) with w >= 0 of the rotation matrix R (Shepperd's method).
+
+    Scalar maths on Python floats: this runs once per served frame, where numpy's per-element
+    overhead would cost several times more.
+    """
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = np.asarray(R, dtype=float)[:3, :3].tolist()
+    tr = r00 + r11 + r22
+    candidates = (tr, r00, r11, r22)
+    i = candidates.index(max(candidates))
     if i == 0:
-        s = 2.0 * np.sqrt(1.0 + tr)
-        q = np.array([0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s])
+        s = 2.0 * math.sqrt(1.0 + tr)
+        q = (0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s)
     elif i == 1:
-        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
-        q = np.array([(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s])
+        s = 2.0 * math.sqrt(1.0 + r00 - r11 - r22)
+        q = ((r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s)
     elif i == 2:
-        s = 2.0 * np.sqrt(1.0 - R[0, 0] + R[1, 1] - R[2, 2])
-        q = np.array([(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s])
+        s = 2.0 * math.sqrt(1.0 - r00 + r11 - r22)
+        q = ((r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s)
     else:
-        s = 2.0 * np.sqrt(1.0 - R[0, 0] - R[1, 1] + R[2, 2])
-        q = np.array([(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s])
-    q /= np.linalg.norm(q)
-    return q if q[0] >= 0 else -q
+        s = 2.0 * math.sqrt(1.0 - r00 - r11 + r22)
+        q = ((r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s)
+    norm = math.sqrt(sum(c * c for c in q))
+    sign = 1.0 if q[0] >= 0 else -1.0
+    return np.array([sign * c / norm for c in q])
 
 
 def matrix_from_quat(q: np.ndarray) -> np.ndarray:

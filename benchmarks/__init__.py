@@ -1,0 +1,1 @@
+"""Benchmarks that print figures (`flextrack bench NAME`); not tests."""

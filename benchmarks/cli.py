@@ -1,0 +1,24 @@
+"""`flextrack bench NAME ...`: benchmarks that print figures. Each is a module in BENCHMARKS exposing
+`add_arguments(parser)` and `run(args) -> int`; add yours to the table."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+
+# name -> (module, one-line help)
+BENCHMARKS: dict[str, tuple[str, str]] = {
+    "service": ("benchmarks.service_bench", "Track stream and unary Estimate: gt_oracle vs a no-op echo servicer"),
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="benchmark", metavar="BENCHMARK", required=True)
+    for name, (module_name, help_text) in BENCHMARKS.items():
+        bench_parser = sub.add_parser(name, help=help_text, description=help_text,
+                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        importlib.import_module(module_name).add_arguments(bench_parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    return int(importlib.import_module(BENCHMARKS[args.benchmark][0]).run(args) or 0)

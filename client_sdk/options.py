@@ -1,0 +1,106 @@
+"""Every knob of the tracker core in one plain dataclass (defaults follow the paper where it gives one)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+INTEGRATORS = ("paper", "midpoint")
+
+
+@dataclass
+class TrackerOptions:
+    """Options of `client_sdk.Tracker`; invalid values raise ValueError when the object is built."""
+
+    # --- PPM: propagation ---
+    integrator: str = "paper"
+    """"paper": the paper's Eqs. 2-7 (rotation, then velocity, then position, each with the IMU sample
+    at the end of the interval). "midpoint": trapezoidal, rates averaged over consecutive samples."""
+
+    # --- PIM: the Pose Inspection Algorithm (Algorithm 1) ---
+    pia: bool = True
+    """False: every frame after initialisation is FINE and failures never reset the PRM (ablation)."""
+    fps: float | None = None
+    """Frame rate for THR_2d; None: measured from the interval to the previous frame."""
+    area_divisor: float = 100.0
+    """THR_area = frame area / area_divisor (paper: 100)."""
+    px_error: float = 10.0
+    """THR_2d = px_error + px_motion * base_rate / fps (paper: 10, 10, 30)."""
+    px_motion: float = 10.0
+    base_rate: float = 30.0
+    near_m: float = 1e-3
+    """A box corner closer than this in front of the camera (or behind it) means TRACKING_LOST."""
+
+    # --- PRM: refinement and the Bias Self-Correction Mechanism ---
+    bscm: bool = True
+    """False: a backend pose resets orientation and position only; velocity and biases are left alone."""
+    backend_after_init: bool = True
+    """False: after the first backend pose, no request is ever sent again (IMU only)."""
+    pose_gain: float = 1.0
+    """Fraction of the way from the propagated pose to the backend pose at the capture time (1.0 = the
+    paper: reset to the backend pose). Not in the paper: below 1 it averages a noisy backend's noise."""
+    gyro_bias_gain: float = 0.05
+    """Fraction of the measured gyro-bias error applied per correction. 1.0 is the paper's formula
+    taken literally; with a backend noisy at 0.3 deg it turns every correction into a 0.1 rad/s bias
+    jump, so the default averages over ~20 corrections (docs/tracker.md has the sweep)."""
+    accel_bias_gain: float = 0.05
+    """Fraction of the paper's accel-bias estimate V_bias / (t1 - t0) applied per correction."""
+    velocity_gain: float = 0.1
+    """Fraction of the velocity error at the mid-time removed per correction (1.0 = the paper; a 3 mm
+    noisy backend makes V_avg noisy by ~70 mm/s, hence the smaller default)."""
+    max_gyro_bias: float = 0.1
+    """Clamp on the norm of the gyro bias estimate, rad/s."""
+    max_accel_bias: float = 1.0
+    """Clamp on the norm of the accelerometer bias estimate, m/s^2."""
+    bscm_imu_orientation: bool = True
+    """V_avg from the backend's camera-frame translations put into O with the IMU-propagated
+    orientation (True), or from the backend's own T_OB positions (False, the paper literally). The
+    backend's orientation noise, times the ~1 m object distance, dominates the position of the body
+    in O (0.3 deg -> ~6 mm); the propagated orientation is smooth and cancels it to first order."""
+    bscm_max_velocity_error: float = 0.5
+    """A correction whose V_bias exceeds this (m/s) is an outlier (a wrong backend pose, a glitch):
+    the pose is still applied, velocity and biases are left alone."""
+    bscm_max_rotation_rate: float = 0.5
+    """Likewise for a rotation drift rate |d_theta| / dt above this, rad/s."""
+    bscm_min_interval_s: float = 0.005
+    bscm_max_interval_s: float = 1.0
+    """BSCM runs only when consecutive backend poses are this far apart (short: division by ~0; long:
+    the linear drift model no longer holds)."""
+
+    # --- Initialisation (the paper's "System Initialization") ---
+    init_window_s: float = 0.5
+    """IMU span before the first backend frame used for gravity and gyro bias."""
+    init_require_still: bool = True
+    """False: initialise from the window even when the device moves (mean accel taken as gravity)."""
+    still_gyro_std: float = 0.02
+    """Stillness: RMS deviation of the gyro from its window mean below this, rad/s."""
+    still_accel_std: float = 0.1
+    """Stillness: RMS deviation of the accelerometer from its window mean below this, m/s^2."""
+
+    # --- Buffers and the state sent with each request ---
+    imu_buffer_s: float = 2.0
+    """IMU samples (and per-sample states) kept for re-propagation and `pose_at`; responses for
+    frames older than this are dropped."""
+    state_imu_samples: int = 176
+    """Recent IMU samples in `state_bytes()`: 176 makes the blob about 10 kB, as the paper sends."""
+
+    def __post_init__(self) -> None:
+        if self.integrator not in INTEGRATORS:
+            raise ValueError(f"integrator must be one of {INTEGRATORS}, got {self.integrator!r}")
+        if self.fps is not None and not (math.isfinite(self.fps) and self.fps > 0):
+            raise ValueError(f"fps must be positive or None, got {self.fps!r}")
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, bool) or f.name in ("integrator", "fps"):
+                continue
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"{f.name} must be a finite number >= 0, got {value!r}")
+        if self.pose_gain > 1:
+            raise ValueError("pose_gain must be in [0, 1]")
+        for name in ("area_divisor", "base_rate", "init_window_s", "imu_buffer_s"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name} must be > 0")
+        if self.bscm_max_interval_s <= self.bscm_min_interval_s:
+            raise ValueError("bscm_max_interval_s must exceed bscm_min_interval_s")
+        if self.imu_buffer_s <= self.init_window_s:
+            raise ValueError("imu_buffer_s must exceed init_window_s")

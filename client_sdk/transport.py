@@ -1,0 +1,202 @@
+"""The device's link to the backend: one long-lived `Track` stream on a background thread.
+
+`TrackClient` keeps a bidirectional `Track` stream open, sends the requests the PRM hands it (the
+PRM keeps one in flight; a request it abandons may still be answered, and the answer is delivered
+like any other) and hands each response to `on_response` on its own thread. When the server goes away, a request outlives its deadline or the
+stream breaks, every request in flight is reported to `on_failure` (so the tracker can re-request)
+and the client reconnects with exponential backoff and jitter. Nothing it does raises into the
+caller.
+
+`make_request` builds an `EstimateRequest` carrying the frame (JPEG bytes from the shell, which
+sends a stand-in of the paper's 90 kB when it renders no image) and the tracker's ~10 kB state as
+`client_state`.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable, Sequence
+
+import grpc
+import numpy as np
+
+from flextrack.v1 import pose_estimation_pb2 as pb
+from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
+
+log = logging.getLogger(__name__)
+
+_END = object()
+
+
+@dataclass(frozen=True)
+class TransportOptions:
+    request_timeout_s: float = 1.0  # no response by then: report a failure and reconnect
+    connect_timeout_s: float = 1.0  # wait this long for the channel to become ready per attempt
+    backoff_initial_s: float = 0.05
+    backoff_max_s: float = 2.0
+    backoff_multiplier: float = 2.0
+    jitter: float = 0.2  # each wait is scaled by U(1 - jitter, 1 + jitter)
+    seed: int = 0  # for the jitter
+
+
+def make_request(*, frame_id: int, capture_time_ns: int, session_id: str = "", estimator: str = "",
+                 object_id: str = "", sequence: str = "", image: bytes | None = None,
+                 encoding: int = pb.Image.JPEG, width: int = 0, height: int = 0,
+                 intrinsics: pb.Intrinsics | None = None, client_state: bytes = b"") -> pb.EstimateRequest:
+    """An `EstimateRequest` for one frame (`image=None`: no image at all)."""
+    return pb.EstimateRequest(
+        session_id=session_id, frame_id=int(frame_id), capture_time_ns=int(capture_time_ns),
+        estimator=estimator, object_id=object_id, sequence=sequence,
+        image=None if image is None else pb.Image(encoding=encoding, data=image, width=width, height=height),
+        intrinsics=intrinsics, client_state=client_state)
+
+
+class Backoff:
+    """Exponential backoff with multiplicative jitter; `reset()` after a success."""
+
+    def __init__(self, options: TransportOptions):
+        self._o = options
+        self._rng = np.random.default_rng(options.seed)
+        self._attempt = 0
+
+    def reset(self) -> None:
+        self._attempt = 0
+
+    def next_s(self) -> float:
+        base = min(self._o.backoff_max_s, self._o.backoff_initial_s * self._o.backoff_multiplier ** self._attempt)
+        self._attempt += 1
+        return base * self._rng.uniform(1.0 - self._o.jitter, 1.0 + self._o.jitter)
+
+
+class TrackClient:
+    """A `Track` stream that survives the server going away. Use as a context manager."""
+
+    def __init__(self, target: str, on_response: Callable[[pb.EstimateResponse], None],
+                 on_failure: Callable[[int, str], None], *,
+                 interceptors: Sequence[grpc.StreamStreamClientInterceptor] = (),
+                 options: TransportOptions = TransportOptions()):
+        self.target = target
+        self._on_response = on_response
+        self._on_failure = on_failure
+        self._interceptors = list(interceptors)
+        self.options = options
+        self._backoff = Backoff(options)
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._outbox: queue.Queue | None = None  # requests of the current stream; None: not connected
+        self._call = None
+        self._in_flight: dict[int, float] = {}  # frame id -> monotonic send time
+        self._threads: list[threading.Thread] = []
+        self.reconnects = 0
+
+    # -- the caller's side ---------------------------------------------------------------------
+    def start(self) -> "TrackClient":
+        for target in (self._run, self._watchdog):
+            t = threading.Thread(target=target, name=f"TrackClient-{target.__name__}", daemon=True)
+            t.start()
+            self._threads.append(t)
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        with self._lock:
+            if self._call is not None:
+                self._call.cancel()
+        for t in self._threads:
+            t.join(timeout=5.0)
+
+    def __enter__(self) -> "TrackClient":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def connected(self) -> bool:
+        return self._outbox is not None
+
+    @property
+    def in_flight(self) -> int:
+        with self._lock:
+            return len(self._in_flight)
+
+    def wait_connected(self, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while not self.connected and time.monotonic() < deadline and not self._stop.is_set():
+            time.sleep(0.01)
+        return self.connected
+
+    def submit(self, request: pb.EstimateRequest) -> bool:
+        """Send `request` if connected; False (nothing sent) otherwise."""
+        with self._lock:
+            if self._outbox is None:
+                return False
+            self._in_flight[request.frame_id] = time.monotonic()
+            self._outbox.put(request)
+            return True
+
+    # -- the background side -------------------------------------------------------------------
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            reason = self._one_stream()
+            self._fail_in_flight(reason)
+            if self._stop.is_set():
+                break
+            self.reconnects += 1
+            self._stop.wait(self._backoff.next_s())
+
+    def _one_stream(self) -> str:
+        """Open a channel and a stream, pump responses until it breaks; returns why it ended."""
+        channel = grpc.insecure_channel(self.target)
+        try:
+            try:
+                grpc.channel_ready_future(channel).result(timeout=self.options.connect_timeout_s)
+            except grpc.FutureTimeoutError:
+                return f"backend {self.target} not reachable"
+            outbox: queue.Queue = queue.Queue()
+            stub = pb_grpc.PoseEstimationStub(grpc.intercept_channel(channel, *self._interceptors))
+            call = stub.Track(iter(outbox.get, _END))
+            with self._lock:
+                self._outbox, self._call = outbox, call
+            self._backoff.reset()
+            try:
+                for response in call:
+                    with self._lock:
+                        self._in_flight.pop(response.frame_id, None)
+                    self._deliver(self._on_response, response)
+                return "stream ended by the server"
+            except grpc.RpcError as exc:
+                return f"stream broke: {exc.code().name} {exc.details() or ''}".strip()
+            finally:
+                with self._lock:
+                    self._outbox, self._call = None, None
+                outbox.put(_END)
+                call.cancel()
+        finally:
+            channel.close()
+
+    def _watchdog(self) -> None:
+        """Cancel the stream when the oldest request outlives its deadline (the reader reconnects)."""
+        while not self._stop.wait(0.02):
+            with self._lock:
+                oldest = min(self._in_flight.values(), default=None)
+                if (oldest is not None and self._call is not None
+                        and time.monotonic() - oldest > self.options.request_timeout_s):
+                    self._call.cancel()
+
+    def _fail_in_flight(self, reason: str) -> None:
+        with self._lock:
+            failed, self._in_flight = list(self._in_flight), {}
+        for frame_id in failed:
+            self._deliver(self._on_failure, frame_id, reason)
+
+    @staticmethod
+    def _deliver(callback, *args) -> None:
+        try:
+            callback(*args)
+        except Exception:  # a faulty callback must not kill the stream
+            log.exception("TrackClient callback failed")

@@ -1,0 +1,1 @@
+"""Pose estimators and their registry; usable in-process, without any server."""

@@ -1,0 +1,116 @@
+"""Object registry: object_id -> model (BOP .ply in mm, held in metres), 3D keypoints and 3D box.
+
+Keypoints are what PnP-style estimators match 2D detections against: the ones given in the
+config, or K points farthest-point-sampled from the model's vertices plus the box centre last
+(PVNet's choice), so keypoint id i is row i of `ObjectModel.keypoints`.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from datasets import bop
+from estimators.base import UnknownObject
+from flextrack.geometry.camera import bbox_corners
+
+DEFAULT_KEYPOINT_COUNT = 8
+
+
+@dataclass(frozen=True)
+class ObjectModel:
+    object_id: str
+    model_path: Path
+    vertices: np.ndarray  # (N, 3) m, object frame
+    keypoints: np.ndarray  # (K, 3) m; keypoint id = row
+    bbox_corners: np.ndarray  # (8, 3) m
+    diameter_m: float
+
+
+def farthest_point_sample(points: np.ndarray, k: int) -> np.ndarray:
+    """k rows of `points` spread out greedily, starting from the one farthest from the centroid."""
+    if k > len(points):
+        raise ValueError(f"cannot sample {k} keypoints from {len(points)} vertices")
+    chosen = [int(np.argmax(np.linalg.norm(points - points.mean(axis=0), axis=1)))]
+    dist = np.linalg.norm(points - points[chosen[0]], axis=1)
+    for _ in range(k - 1):
+        chosen.append(int(np.argmax(dist)))
+        dist = np.minimum(dist, np.linalg.norm(points - points[chosen[-1]], axis=1))
+    return points[chosen]
+
+
+def _diameter_m(model_path: Path, vertices: np.ndarray) -> float:
+    """BOP's diameter from models_info.json beside the model when it lists this object, else computed."""
+    info_path = model_path.parent / "models_info.json"
+    match = re.fullmatch(r"obj_(\d+)", model_path.stem)
+    if info_path.exists() and match:
+        info = bop.read_models_info(info_path).get(int(match.group(1)))
+        if info and "diameter" in info:
+            return float(info["diameter"]) / 1000.0
+    hull = trimesh.PointCloud(vertices).convex_hull.vertices
+    return float(np.max(np.linalg.norm(hull[:, None, :] - hull[None, :, :], axis=2)))
+
+
+def load_object(object_id: str, model_path: str | Path, keypoints=None,
+                keypoint_count: int = DEFAULT_KEYPOINT_COUNT) -> ObjectModel:
+    """Read a .ply in mm. `keypoints`: (K, 3) in metres, a text/.npy file of them, or None to sample."""
+    model_path = Path(model_path)
+    if not model_path.is_file():
+        raise FileNotFoundError(f"object '{object_id}': model file {model_path} not found")
+    geometry = trimesh.load(model_path, process=False)
+    vertices = np.asarray(geometry.vertices, dtype=float) / 1000.0
+    if len(vertices) == 0:
+        raise ValueError(f"object '{object_id}': model {model_path} has no vertices")
+    corners = bbox_corners(vertices)
+    if keypoints is None:
+        kp = np.vstack([farthest_point_sample(vertices, keypoint_count), corners.mean(axis=0)])
+    elif isinstance(keypoints, (str, Path)):
+        path = Path(keypoints)
+        kp = np.load(path) if path.suffix == ".npy" else np.loadtxt(path, ndmin=2)
+    else:
+        kp = np.asarray(keypoints, dtype=float)
+    if kp.ndim != 2 or kp.shape[1] != 3 or not np.all(np.isfinite(kp)):
+        raise ValueError(f"object '{object_id}': keypoints must be a finite (K, 3) array in metres, got {kp.shape}")
+    return ObjectModel(object_id, model_path, vertices, kp.astype(float), corners, _diameter_m(model_path, vertices))
+
+
+class ObjectRegistry:
+    """The objects a server knows, by id."""
+
+    def __init__(self, models: list[ObjectModel] | tuple[ObjectModel, ...] = ()):
+        self._models = {m.object_id: m for m in models}
+
+    def add(self, model: ObjectModel) -> None:
+        self._models[model.object_id] = model
+
+    def get(self, object_id: str) -> ObjectModel:
+        try:
+            return self._models[object_id]
+        except KeyError:
+            raise UnknownObject(f"unknown object '{object_id}'; known: {self.ids()}") from None
+
+    def ids(self) -> list[str]:
+        return sorted(self._models)
+
+    def __contains__(self, object_id: str) -> bool:
+        return object_id in self._models
+
+    @classmethod
+    def from_config(cls, tables: dict, base_dir: Path) -> ObjectRegistry:
+        """`tables` is the config's [objects] table: id -> {model, keypoints?, keypoint_count?}."""
+        registry = cls()
+        for object_id, table in tables.items():
+            unknown = set(table) - {"model", "keypoints", "keypoint_count"}
+            if unknown or "model" not in table:
+                raise ValueError(f"[objects.{object_id}] needs `model` and accepts `keypoints`, `keypoint_count`; "
+                                 f"got {sorted(table)}")
+            keypoints = table.get("keypoints")
+            if isinstance(keypoints, str):
+                keypoints = base_dir / keypoints
+            registry.add(load_object(object_id, base_dir / table["model"], keypoints,
+                                     int(table.get("keypoint_count", DEFAULT_KEYPOINT_COUNT))))
+        return registry

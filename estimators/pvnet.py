@@ -1,0 +1,210 @@
+"""The `pvnet` estimator: a PVNet-style network (onnxruntime), RANSAC keypoint voting, then PnP.
+
+Per frame: the image is halved (area averaging) and the network predicts the object mask and, per
+pixel, unit vectors towards the object's keypoints. The largest mask component locates the object;
+a second pass on a crop scaled so that the object is about `zoom_object_px` wide (the sizes it was
+trained on, and more pixels on small far objects) gives the field that is voted on. The 2D
+keypoints then go through the `pnp` estimator, the one PnP solver of the project.
+
+The network is tied to one object: its ONNX metadata holds the 3D keypoints it was trained for,
+and loading refuses a model whose keypoints differ from the object's registered ones.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from estimators.base import EstimateInput, EstimateOutput, Estimator, InvalidInput, Status
+from estimators.keypoint_voting import VotingConfig, vote
+from estimators.objects import ObjectRegistry
+from estimators.pnp import PnpEstimator
+
+INPUT_SCALE = 2  # frame -> network input (area averaging)
+OUTPUT_STRIDE = 2  # network input -> output grid
+
+
+def _providers(device: str) -> list[str]:
+    import onnxruntime as ort
+
+    available = ort.get_available_providers()
+    wanted = ["CPUExecutionProvider"] if device == "cpu" else ["CUDAExecutionProvider", "CPUExecutionProvider"]
+    return [p for p in wanted if p in available]
+
+
+def _largest_component(mask: np.ndarray) -> np.ndarray:
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    if count <= 1:
+        return np.zeros_like(mask, dtype=bool)
+    return labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+
+
+class PvnetEstimator(Estimator):
+    kind = "pvnet"
+    version = "1.0"
+    uses_image = True
+    description = "PVNet-style network (mask + keypoint vector field, onnxruntime), RANSAC voting, OpenCV PnP"
+
+    def __init__(self, objects: ObjectRegistry, model_path: str | Path, name: str = "pvnet", object_ids=(),
+                 min_mask_px: int = 12, zoom: bool = True, zoom_size: int = 128, zoom_object_px: float = 64.0,
+                 hypotheses: int = 64, cos_threshold: float = 0.99, ransac_px: float = 4.0, seed: int = 0,
+                 device: str = "auto", threads: int = 0):
+        import onnxruntime as ort
+
+        ids = list(object_ids) or objects.ids()
+        if len(ids) != 1:
+            raise ValueError(f"estimator '{name}': a pvnet model serves exactly one object, got {ids}; "
+                             f"set `objects = [\"...\"]`")
+        super().__init__(name, ids)
+        model_path = Path(model_path)
+        if not model_path.is_file():
+            raise FileNotFoundError(f"estimator '{name}': ONNX model {model_path} not found "
+                                    f"(train one with `flextrack train pvnet`)")
+        options = ort.SessionOptions()
+        if threads:
+            options.intra_op_num_threads = int(threads)
+        self.session = ort.InferenceSession(str(model_path), options, providers=_providers(device))
+        meta = self.session.get_modelmeta().custom_metadata_map
+        model_kp = np.asarray(json.loads(meta.get("keypoints_O", "[]")), dtype=float)
+        object_kp = objects.get(ids[0]).keypoints
+        if model_kp.shape != object_kp.shape or not np.allclose(model_kp, object_kp, atol=1e-4):
+            raise ValueError(f"estimator '{name}': {model_path.name} was trained for other keypoints than object "
+                             f"'{ids[0]}' has ({model_kp.shape[0]} vs {object_kp.shape[0]}, or different positions)")
+        self.model_path = model_path
+        self.num_keypoints = len(object_kp)
+        self.min_mask_px = int(min_mask_px)
+        self.zoom, self.zoom_size, self.zoom_object_px = bool(zoom), int(zoom_size), float(zoom_object_px)
+        self.voting = VotingConfig(hypotheses=int(hypotheses), cos_threshold=float(cos_threshold))
+        self.seed = int(seed)
+        self._pnp = PnpEstimator(objects, name=f"{name}.pnp", object_ids=ids, ransac_px=ransac_px)
+
+    @classmethod
+    def from_spec(cls, spec) -> "PvnetEstimator":
+        spec.check_params({"min_mask_px", "zoom", "zoom_size", "zoom_object_px", "hypotheses", "cos_threshold",
+                           "ransac_px", "seed", "device", "threads"})
+        if spec.model is None:
+            raise ValueError(f"estimator '{spec.name}' (kind pvnet) needs `model = \"path/to/pvnet.onnx\"`")
+        return cls(spec.objects, spec.model, spec.name, spec.object_ids, **spec.params)
+
+    @property
+    def providers(self) -> list[str]:
+        return self.session.get_providers()
+
+    # ---- network passes ------------------------------------------------------------------------
+
+    def _run(self, images: list[np.ndarray]) -> np.ndarray:
+        x = np.stack(images).astype(np.float32).transpose(0, 3, 1, 2) / np.float32(255.0)
+        return self.session.run(None, {"image": np.ascontiguousarray(x)})[0]
+
+    def _zoom_crop(self, image: np.ndarray, half: np.ndarray, box: tuple[float, float, float, float]):
+        """A square crop around the box, scaled so the object is about zoom_object_px wide.
+
+        Returns the crop and (scale, offset) such that frame point u = crop point / scale + offset.
+        """
+        x0, y0, x1, y1 = box
+        side = max(x1 - x0, y1 - y0, 8.0)
+        scale = self.zoom_object_px / side  # crop px per frame px
+        source, src_scale, src_shift = (image, 1.0, 0.0) if scale > 0.75 else (half, 0.5, -0.25)
+        s = scale / src_scale  # crop px per source px (source u_s = src_scale * u + src_shift)
+        c_src = src_scale * np.array([(x0 + x1) / 2, (y0 + y1) / 2]) + src_shift
+        M = np.array([[s, 0.0, (self.zoom_size - 1) / 2 - s * c_src[0]],
+                      [0.0, s, (self.zoom_size - 1) / 2 - s * c_src[1]]])
+        crop = cv2.warpAffine(source, M, (self.zoom_size, self.zoom_size), flags=cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_REPLICATE)
+        # crop c = s * u_s + M[:, 2] = s * (src_scale * u + src_shift) + M[:, 2]  ->  u = (c - off_c) / scale
+        off_c = s * src_shift + M[:, 2]
+        return crop, scale, off_c
+
+    @staticmethod
+    def _field(out: np.ndarray, mask: np.ndarray):
+        """Object pixels (rows, cols) and their (N, K, 2) vectors from one network output."""
+        rows, cols = np.nonzero(mask)
+        vec = out[1:, rows, cols].T.reshape(len(rows), -1, 2)
+        return rows, cols, vec
+
+    # ---- estimation ----------------------------------------------------------------------------
+
+    def _check(self, inp: EstimateInput) -> np.ndarray:
+        if inp.camera is None:
+            raise InvalidInput("pvnet needs the camera intrinsics (fx, fy, cx, cy, width, height)")
+        if inp.image is None:
+            raise InvalidInput("pvnet needs the frame's image")
+        self.resolve_object(inp.object_id)
+        image = inp.image if inp.image.ndim == 3 else cv2.cvtColor(inp.image, cv2.COLOR_GRAY2RGB)
+        if image.shape[2] != 3 or image.dtype != np.uint8:
+            raise InvalidInput(f"pvnet needs an HxWx3 uint8 RGB image, got {image.shape} {image.dtype}")
+        if min(image.shape[:2]) < 32:
+            raise InvalidInput(f"image of {image.shape[1]}x{image.shape[0]} is too small for pvnet")
+        return image
+
+    def estimate(self, inp: EstimateInput) -> EstimateOutput:
+        return self.estimate_batch([inp])[0]
+
+    def estimate_batch(self, inputs: list[EstimateInput]) -> list[EstimateOutput]:
+        """Frames of one size run through the network together; voting and PnP run per frame."""
+        images = [self._check(inp) for inp in inputs]
+        results: list[EstimateOutput | None] = [None] * len(inputs)
+        by_size: dict[tuple, list[int]] = {}
+        for i, image in enumerate(images):
+            by_size.setdefault(image.shape, []).append(i)
+        for idx in by_size.values():
+            for i, out in zip(idx, self._estimate_same_size([inputs[i] for i in idx], [images[i] for i in idx])):
+                results[i] = out
+        return results
+
+    def _estimate_same_size(self, inputs, images) -> list[EstimateOutput]:
+        n = len(images)
+        h, w = images[0].shape[:2]
+        t0 = time.perf_counter()
+        halves = [cv2.resize(im, (w // INPUT_SCALE, h // INPUT_SCALE), interpolation=cv2.INTER_AREA) for im in images]
+        coarse = self._run(halves)
+        stride = INPUT_SCALE * OUTPUT_STRIDE  # frame px per output cell
+        fields = []  # per frame: None (not found) or (pixels (N, 2) in frame px, vectors (N, K, 2), mask area)
+        boxes = []
+        for out in coarse:
+            mask = _largest_component(out[0] > 0)
+            area = int(mask.sum())
+            if area < self.min_mask_px:
+                fields.append(None)
+                boxes.append(None)
+                continue
+            rows, cols, vec = self._field(out, mask)
+            fields.append((np.stack([stride * cols + 1.5, stride * rows + 1.5], axis=1).astype(float), vec, area))
+            boxes.append((stride * cols.min(), stride * rows.min(), stride * cols.max() + stride,
+                          stride * rows.max() + stride))
+        found = [i for i in range(n) if boxes[i] is not None]
+        if self.zoom and found:
+            crops = [self._zoom_crop(images[i], halves[i], boxes[i]) for i in found]
+            fine = self._run([c[0] for c in crops])
+            for i, out, (_, scale, off) in zip(found, fine, crops):
+                mask = _largest_component(out[0] > 0)
+                if mask.sum() < self.min_mask_px:
+                    continue  # keep the coarse field
+                rows, cols, vec = self._field(out, mask)
+                crop_pts = np.stack([OUTPUT_STRIDE * cols + 0.5, OUTPUT_STRIDE * rows + 0.5], axis=1)
+                fields[i] = ((crop_pts - off) / scale, vec, fields[i][2])
+        inference_ms = (time.perf_counter() - t0) * 1e3 / n
+
+        outputs = []
+        for inp, field in zip(inputs, fields):
+            if field is None:
+                outputs.append(EstimateOutput(Status.OBJECT_NOT_FOUND, message="the object mask is too small or empty",
+                                              stage_ms={"inference": inference_ms}))
+                continue
+            t1 = time.perf_counter()
+            rng = np.random.default_rng([self.seed, inp.frame_id & 0xFFFFFFFF])
+            keypoints, inlier_ratio = vote(field[0], field[1], rng, self.voting)
+            t2 = time.perf_counter()
+            kp_rows = np.column_stack([np.arange(len(keypoints)), keypoints])
+            out = self._pnp.estimate(replace(inp, keypoints=kp_rows, image=None))
+            out.stage_ms = {"inference": inference_ms, "voting": (t2 - t1) * 1e3,
+                            "pnp": out.stage_ms.get("pnp", (time.perf_counter() - t2) * 1e3)}
+            if out.status == Status.OK:
+                out.confidence = float(out.confidence * np.mean(inlier_ratio))
+            outputs.append(out)
+        return outputs

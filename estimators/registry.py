@@ -1,0 +1,132 @@
+"""Build estimators from a TOML config and the `flextrack.estimators` entry-point group.
+
+A kind is a factory: a class with a `from_spec(spec)` classmethod, or any callable taking an
+`EstimatorSpec`. Third-party packages register kinds under the entry-point group; the kinds this
+repository ships are listed in BUILTIN_KINDS too, so a source checkout works before (re)installing.
+"""
+
+from __future__ import annotations
+
+import importlib
+import tomllib
+from dataclasses import dataclass, field
+from importlib.metadata import entry_points
+from pathlib import Path
+
+from estimators.base import Estimator, UnknownEstimator
+from estimators.objects import ObjectRegistry
+
+ENTRY_POINT_GROUP = "flextrack.estimators"
+BUILTIN_KINDS = {
+    "gt_oracle": "estimators.gt_oracle:GtOracleEstimator",
+    "pnp": "estimators.pnp:PnpEstimator",
+}
+
+
+@dataclass
+class EstimatorSpec:
+    """One [[estimators]] entry of the config, with paths already resolved."""
+
+    name: str
+    kind: str
+    objects: ObjectRegistry  # every object of the config
+    object_ids: list[str] = field(default_factory=list)  # empty: all objects
+    model: Path | None = None
+    params: dict = field(default_factory=dict)
+    base_dir: Path = Path(".")  # relative paths in params are relative to this (the config's folder)
+
+    def path(self, value: str | Path) -> Path:
+        return self.base_dir / value
+
+    def check_params(self, known: set[str]) -> None:
+        unknown = set(self.params) - known
+        if unknown:
+            raise ValueError(f"estimator '{self.name}' (kind {self.kind}): unknown parameter(s) {sorted(unknown)}; "
+                             f"known: {sorted(known)}")
+
+
+def known_kinds() -> dict[str, str]:
+    """kind -> 'module:attr' of its factory, entry points over the built-in table."""
+    kinds = dict(BUILTIN_KINDS)
+    kinds.update({ep.name: ep.value for ep in entry_points(group=ENTRY_POINT_GROUP)})
+    return kinds
+
+
+def build_estimator(spec: EstimatorSpec) -> Estimator:
+    kinds = known_kinds()
+    if spec.kind not in kinds:
+        raise ValueError(f"estimator '{spec.name}': unknown kind '{spec.kind}'; known kinds: {sorted(kinds)} "
+                         f"(a package adds kinds through the '{ENTRY_POINT_GROUP}' entry-point group)")
+    module_name, _, attr = kinds[spec.kind].partition(":")
+    factory = importlib.import_module(module_name)
+    for part in attr.split("."):
+        factory = getattr(factory, part)
+    return factory.from_spec(spec) if hasattr(factory, "from_spec") else factory(spec)
+
+
+class EstimatorRegistry:
+    """Estimators by name, plus the default one that requests with an empty name get."""
+
+    def __init__(self, estimators: list[Estimator] | tuple[Estimator, ...] = (), default: str | None = None,
+                 objects: ObjectRegistry | None = None):
+        self.objects = objects or ObjectRegistry()
+        self._estimators: dict[str, Estimator] = {}
+        self.default: str | None = None  # the first estimator added unless named
+        for estimator in estimators:
+            self.add(estimator)
+        if default is not None:
+            if default not in self._estimators:
+                raise ValueError(f"default estimator '{default}' is not configured; configured: {self.names()}")
+            self.default = default
+
+    def add(self, estimator: Estimator) -> None:
+        if estimator.name in self._estimators:
+            raise ValueError(f"two estimators are named '{estimator.name}'")
+        self._estimators[estimator.name] = estimator
+        if self.default is None:
+            self.default = estimator.name
+
+    def get(self, name: str = "") -> Estimator:
+        name = name or self.default or ""
+        try:
+            return self._estimators[name]
+        except KeyError:
+            raise UnknownEstimator(f"unknown estimator '{name}'; available: {self.names()}") from None
+
+    def names(self) -> list[str]:
+        return list(self._estimators)
+
+    def __iter__(self):
+        return iter(self._estimators.values())
+
+    @property
+    def ready(self) -> bool:
+        return all(e.ready for e in self)
+
+    @classmethod
+    def from_dict(cls, doc: dict, base_dir: Path) -> EstimatorRegistry:
+        objects = ObjectRegistry.from_config(doc.get("objects", {}), base_dir)
+        estimators = []
+        for entry in doc.get("estimators", []):
+            unknown = set(entry) - {"name", "kind", "objects", "model", "params"}
+            if unknown or "kind" not in entry:
+                raise ValueError(f"[[estimators]] entry {entry.get('name', '?')}: needs `kind`, accepts name, objects, "
+                                 f"model, params; unexpected {sorted(unknown)}")
+            object_ids = list(entry.get("objects", []))
+            for object_id in object_ids:
+                objects.get(object_id)  # fail at load time, naming the object
+            spec = EstimatorSpec(
+                name=entry.get("name", entry["kind"]), kind=entry["kind"], objects=objects, object_ids=object_ids,
+                model=base_dir / entry["model"] if "model" in entry else None,
+                params=dict(entry.get("params", {})), base_dir=base_dir)
+            estimators.append(build_estimator(spec))
+        return cls(estimators, doc.get("server", {}).get("default_estimator"), objects)
+
+    @classmethod
+    def from_config(cls, path: str | Path) -> EstimatorRegistry:
+        path = Path(path)
+        try:
+            doc = tomllib.loads(path.read_text())
+        except tomllib.TOMLDecodeError as exc:
+            raise ValueError(f"{path}: not valid TOML: {exc}") from None
+        return cls.from_dict(doc, path.resolve().parent)

@@ -1,0 +1,1 @@
+"""Load testing of the PoseEstimation service: simulated devices streaming frames over gRPC."""

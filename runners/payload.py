@@ -1,0 +1,41 @@
+"""A stand-in for the paper's 90 kB frame when no image is rendered.
+
+The paper sent a 640x480 JPEG of about 90 kB with every request. When a run renders no frames
+(oracle backends never look at pixels) we still send a real, decodable JPEG of that size: a plain
+grey image padded with APP15 segments of seeded random bytes, so the wire, the interceptor's
+payload size and the server's image check all see what they would see with a rendered frame.
+"""
+
+from __future__ import annotations
+
+import io
+from functools import lru_cache
+
+import numpy as np
+from PIL import Image
+
+PAPER_JPEG_BYTES = 90 * 1024  # a 640x480 JPEG at compression ratio 10 (paper Section 4.1)
+_APP15 = b"\xff\xef"
+_MAX_SEGMENT_DATA = 65533  # a segment's 2-byte length counts itself
+
+
+@lru_cache(maxsize=8)
+def _plain_jpeg(width: int, height: int) -> bytes:
+    buf = io.BytesIO()
+    Image.new("L", (width, height), 128).save(buf, format="JPEG", quality=50)
+    return buf.getvalue()
+
+
+def stand_in_jpeg(width: int = 640, height: int = 480, n_bytes: int = PAPER_JPEG_BYTES, seed: int = 0) -> bytes:
+    """A valid width x height JPEG of `n_bytes` (to 3 bytes; never below its minimum size)."""
+    base = _plain_jpeg(int(width), int(height))
+    pad = n_bytes - len(base)
+    rng = np.random.default_rng(seed)
+    segments = []
+    while pad >= 4:
+        data_len = min(_MAX_SEGMENT_DATA, pad - 4)
+        if 0 < pad - 4 - data_len < 4:  # leave the last segment room for its own header
+            data_len -= 4
+        segments.append(_APP15 + (data_len + 2).to_bytes(2, "big") + rng.bytes(data_len))
+        pad -= 4 + data_len
+    return base[:2] + b"".join(segments) + base[2:]

@@ -1,0 +1,55 @@
+"""`flextrack serve`: run the PoseEstimation gRPC server, or check a running one's health."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+from pathlib import Path
+
+DEFAULT_CONFIG = Path(__file__).with_name("default_config.toml")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = (
+        "Serve flextrack.v1.PoseEstimation (Estimate, Track, ListEstimators) with gRPC health checking and server "
+        "reflection. Logs are JSON lines on stderr. SIGTERM/SIGINT stop it gracefully (exit 0).")
+    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG,
+                        help="TOML file with [server], [objects.<id>] and [[estimators]] (docs/service.md)")
+    parser.add_argument("--host", default="0.0.0.0", help="address to listen on")
+    parser.add_argument("--port", type=int, default=50051, help="port to listen on (0 = any free port)")
+    parser.add_argument("--max-message-mb", type=float, default=8.0, help="largest request/response in MiB")
+    parser.add_argument("--grace-s", type=float, default=5.0,
+                        help="on SIGTERM/SIGINT, seconds in-flight calls get to finish")
+    parser.add_argument("--workers", type=int, default=4, help="threads that run estimator calls")
+    parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    parser.add_argument("--check", metavar="ADDR",
+                        help="do not serve: ask the server at ADDR (host:port) for its health; exit 0 if SERVING")
+
+
+def check(address: str, timeout_s: float = 3.0) -> int:
+    import grpc
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    with grpc.insecure_channel(address) as channel:
+        try:
+            reply = health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(), timeout=timeout_s)
+        except grpc.RpcError as exc:
+            print(f"{address}: {exc.code().name}: {exc.details()}", file=sys.stderr)
+            return 1
+    print(f"{address}: {health_pb2.HealthCheckResponse.ServingStatus.Name(reply.status)}")
+    return 0 if reply.status == health_pb2.HealthCheckResponse.SERVING else 1
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.check:
+        return check(args.check)
+    from estimators.registry import EstimatorRegistry
+    from service import server
+
+    server.configure_logging(args.log_level)
+    if not args.config.is_file():
+        print(f"flextrack serve: config file {args.config} not found", file=sys.stderr)
+        return 2
+    return asyncio.run(server.serve(lambda: EstimatorRegistry.from_config(args.config), args.host, args.port,
+                                    args.max_message_mb, args.grace_s, args.workers))

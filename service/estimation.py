@@ -1,0 +1,86 @@
+"""EstimationService: a wire request in, a wire response (or a typed error) out; no gRPC server needed.
+
+`estimate` raises the estimators' typed errors (the servicer maps them to gRPC codes for unary
+calls); `answer` never raises and puts them in the response status instead (the Track stream).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+from estimators.base import EstimateInput, EstimatorError, InvalidInput, Status, UnknownEstimator
+from estimators.registry import EstimatorRegistry
+from flextrack.geometry import se3
+from flextrack.v1 import pose_estimation_pb2 as pb
+from service import request_decoding
+
+log = logging.getLogger("flextrack.service")
+
+PB_STATUS = {
+    Status.OK: pb.EstimateResponse.OK,
+    Status.OBJECT_NOT_FOUND: pb.EstimateResponse.OBJECT_NOT_FOUND,
+    Status.INVALID_INPUT: pb.EstimateResponse.INVALID_INPUT,
+    Status.INTERNAL: pb.EstimateResponse.INTERNAL,
+}
+INTERNAL_MESSAGE = "internal error in the estimator (details are in the server log)"
+
+
+class EstimationService:
+    def __init__(self, registry: EstimatorRegistry):
+        self.registry = registry
+
+    def list_estimators(self) -> pb.ListEstimatorsResponse:
+        return pb.ListEstimatorsResponse(estimators=[
+            pb.EstimatorInfo(name=e.name, kind=e.kind, version=e.version, objects=e.objects, ready=e.ready,
+                             is_default=e.name == self.registry.default, description=e.description)
+            for e in self.registry])
+
+    def is_cheap(self, request: pb.EstimateRequest) -> bool:
+        """Whether the request's estimator is cheap enough to call on the event loop."""
+        try:
+            return self.registry.get(request.estimator).cheap
+        except UnknownEstimator:
+            return True  # answered at once with an error
+
+    def estimate(self, request: pb.EstimateRequest) -> pb.EstimateResponse:
+        start = time.perf_counter()
+        estimator = self.registry.get(request.estimator)
+        camera = request_decoding.decode_camera(request.intrinsics)
+        keypoints = request_decoding.decode_keypoints(request.keypoints)
+        if estimator.uses_image:
+            image = request_decoding.decode_image(request.image, camera)
+            if image is None:
+                raise InvalidInput(f"estimator '{estimator.name}' needs an image")
+        else:
+            request_decoding.check_image(request.image, camera)
+            image = None
+        decoded = time.perf_counter()
+        out = estimator.estimate(EstimateInput(
+            frame_id=request.frame_id, capture_time_ns=request.capture_time_ns, object_id=request.object_id,
+            sequence=request.sequence, camera=camera, image=image, keypoints=keypoints))
+        done = time.perf_counter()
+        pose = None
+        if out.T_CO is not None:
+            q, t = se3.to_quat_translation(out.T_CO)
+            pose = pb.Pose(tx=t[0], ty=t[1], tz=t[2], qw=q[0], qx=q[1], qy=q[2], qz=q[3])
+        # Stage timings only for estimators that report stages: filling the map costs more than the
+        # oracle's whole estimate, and server_time_ms already covers a single-stage one.
+        stage_ms = {"decode": (decoded - start) * 1e3, "estimate": (done - decoded) * 1e3, **out.stage_ms} \
+            if out.stage_ms else None
+        return pb.EstimateResponse(
+            frame_id=request.frame_id, capture_time_ns=request.capture_time_ns, status=PB_STATUS[out.status],
+            message=out.message, pose=pose, confidence=out.confidence,
+            estimator=f"{estimator.name}@{estimator.version}", server_time_ms=(done - start) * 1e3, stage_ms=stage_ms)
+
+    def answer(self, request: pb.EstimateRequest) -> pb.EstimateResponse:
+        """Like `estimate`, but every failure becomes the response's status and message."""
+        try:
+            return self.estimate(request)
+        except EstimatorError as exc:  # unknown estimator/object/sequence or bad input: the client's to fix
+            status, message = pb.EstimateResponse.INVALID_INPUT, str(exc)
+        except Exception:
+            log.exception("estimator failed", extra={"frame_id": request.frame_id, "estimator": request.estimator})
+            status, message = pb.EstimateResponse.INTERNAL, INTERNAL_MESSAGE
+        return pb.EstimateResponse(frame_id=request.frame_id, capture_time_ns=request.capture_time_ns,
+                                   status=status, message=message)

@@ -1,0 +1,111 @@
+"""What a production server adds around the servicer, gathered from `flextrack serve` flags:
+TLS (and mutual TLS), bearer tokens, the admission bound, dynamic batching and the metrics endpoint.
+
+The server (service.server) asks this object for its interceptors, its port credentials, the
+registry to serve (batching wraps estimators that can batch) and starts the metrics endpoint; with
+the defaults it adds only the admission interceptor without a bound (which parses requests safely
+and feeds the metrics), so a plain `flextrack serve` behaves as before.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import grpc
+
+from estimators.registry import EstimatorRegistry
+from service import security
+from service.admission import AdmissionInterceptor
+from service.batching import with_batching
+from service.metrics import ServiceMetrics
+
+log = logging.getLogger("flextrack.service")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("security, capacity and metrics (docs/operations.md)")
+    group.add_argument("--tls-cert", type=Path, help="serve TLS with this certificate chain (PEM)")
+    group.add_argument("--tls-key", type=Path, help="private key of --tls-cert (PEM)")
+    group.add_argument("--client-ca", type=Path, help="mutual TLS: require client certificates signed by this CA")
+    group.add_argument("--token-file", type=Path,
+                       help="require 'authorization: Bearer <token>' with one of the tokens in this file (one a line); "
+                            "health checks stay open")
+    group.add_argument("--max-queue", type=int, default=0,
+                       help="frames per estimator let in at once; past it Estimate gets RESOURCE_EXHAUSTED and a "
+                            "Track frame status UNAVAILABLE at once (0 = no bound)")
+    group.add_argument("--max-streams", type=int, default=0,
+                       help="open Track streams (devices) served at once; past it a new stream fails at once with "
+                            "RESOURCE_EXHAUSTED (0 = no bound; set it from `flextrack bench capacity`)")
+    group.add_argument("--max-batch", type=int, default=1,
+                       help="dynamic batching: most frames per call of an estimator that can batch (1 = off)")
+    group.add_argument("--batch-delay-ms", type=float, default=2.0,
+                       help="dynamic batching: longest a frame waits for others to join its batch")
+    group.add_argument("--metrics-port", type=int, default=0, help="serve Prometheus /metrics on this port (0 = off)")
+
+
+@dataclass
+class Hardening:
+    tls_cert: Path | None = None
+    tls_key: Path | None = None
+    client_ca: Path | None = None
+    tokens: list[str] = field(default_factory=list)
+    max_queue: int = 0
+    max_streams: int = 0
+    max_batch: int = 1
+    batch_delay_ms: float = 2.0
+    metrics_port: int = 0
+    metrics_host: str = "0.0.0.0"
+    metrics: ServiceMetrics = field(default_factory=ServiceMetrics)
+    admission: AdmissionInterceptor | None = None
+
+    def __post_init__(self) -> None:
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ValueError("TLS needs both --tls-cert and --tls-key")
+        if self.client_ca is not None and self.tls_cert is None:
+            raise ValueError("--client-ca (mutual TLS) needs --tls-cert and --tls-key")
+        if self.max_batch < 1 or self.batch_delay_ms < 0 or self.metrics_port < 0:
+            raise ValueError("--max-batch >= 1, --batch-delay-ms >= 0 and --metrics-port >= 0 are required")
+        self.admission = AdmissionInterceptor(self.max_queue, self.metrics, max_streams=self.max_streams)
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> "Hardening":
+        """Read the flags of add_arguments; files are read now, so a bad path fails before serving."""
+        tokens = security.load_tokens(args.token_file) if args.token_file else []
+        hardening = cls(args.tls_cert, args.tls_key, args.client_ca, tokens, args.max_queue, args.max_streams,
+                        args.max_batch, args.batch_delay_ms, args.metrics_port)
+        hardening.credentials()  # reads and checks the PEM files
+        return hardening
+
+    def interceptors(self) -> list[grpc.aio.ServerInterceptor]:
+        """Authentication first (a refused call costs nothing more), then admission and metrics."""
+        return ([security.BearerTokenInterceptor(self.tokens)] if self.tokens else []) + [self.admission]
+
+    def credentials(self) -> grpc.ServerCredentials | None:
+        if self.tls_cert is None:
+            return None
+        return security.server_credentials(self.tls_cert, self.tls_key, self.client_ca)
+
+    def workers(self, requested: int) -> int:
+        """Estimator threads: a batch can only fill if at least max_batch frames can wait for it at once."""
+        return max(requested, 2 * self.max_batch) if self.max_batch > 1 else requested
+
+    def prepare(self, registry: EstimatorRegistry) -> EstimatorRegistry:
+        """The registry to serve: batch-capable estimators wrapped; admission counts '' as the default."""
+        registry, batched = with_batching(registry, self.max_batch, self.batch_delay_ms / 1e3, self.metrics)
+        if batched:
+            log.info("dynamic batching", extra={"estimators": batched, "max_batch": self.max_batch,
+                                                "batch_delay_ms": self.batch_delay_ms})
+        default = registry.default or ""
+        self.admission.resolve = lambda name: name or default
+        return registry
+
+    def start_metrics(self):
+        """Start /metrics when a port is set; returns the HTTP server (or None)."""
+        if not self.metrics_port:
+            return None
+        http_server, _ = self.metrics.serve_http(self.metrics_port, self.metrics_host)
+        log.info("metrics", extra={"address": f"{self.metrics_host}:{self.metrics_port}", "path": "/metrics"})
+        return http_server

@@ -1,0 +1,67 @@
+"""Prometheus metrics of the backend: what an operator needs to see load, errors and saturation.
+
+- `flextrack_requests_total{method, estimator, code}`: every frame answered, by outcome (`OK`, a
+  response status such as `OBJECT_NOT_FOUND`, or a gRPC code such as `RESOURCE_EXHAUSTED` when the
+  admission queue was full).
+- `flextrack_request_latency_seconds{method, estimator}`: time from the frame reaching the servicer
+  to its answer, as a histogram.
+- `flextrack_queue_depth{estimator}`: frames admitted and not yet answered.
+- `flextrack_streams`: open Track streams (devices connected).
+- `flextrack_batch_size{estimator}`: frames per call of a batching estimator.
+
+Each `ServiceMetrics` has its own CollectorRegistry, so several servers (tests, replicas in one
+process) do not collide; `serve_http` exposes it on /metrics.
+"""
+
+from __future__ import annotations
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, start_http_server
+
+LATENCY_BUCKETS_S = (0.001, 0.0025, 0.005, 0.01, 0.02, 0.033, 0.05, 0.075, 0.1, 0.15, 0.25, 0.5, 1.0, 2.5)
+BATCH_BUCKETS = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 64)
+
+
+class ServiceMetrics:
+    def __init__(self, registry: CollectorRegistry | None = None):
+        self.registry = registry or CollectorRegistry()
+        self.requests = Counter("flextrack_requests", "Frames answered, by method, estimator and outcome code",
+                                ["method", "estimator", "code"], registry=self.registry)
+        self.latency = Histogram("flextrack_request_latency_seconds", "Time from a frame reaching the servicer to "
+                                 "its answer", ["method", "estimator"], buckets=LATENCY_BUCKETS_S,
+                                 registry=self.registry)
+        self.queue_depth = Gauge("flextrack_queue_depth", "Frames admitted and not yet answered, per estimator",
+                                 ["estimator"], registry=self.registry)
+        self.streams = Gauge("flextrack_streams", "Open Track streams", registry=self.registry)
+        self.batch_size = Histogram("flextrack_batch_size", "Frames per batched estimator call", ["estimator"],
+                                    buckets=BATCH_BUCKETS, registry=self.registry)
+
+    def observe(self, method: str, estimator: str, code: str, seconds: float | None) -> None:
+        """One answered frame; `seconds` None for frames refused before any work (not in the histogram)."""
+        self.requests.labels(method, estimator, code).inc()
+        if seconds is not None:
+            self.latency.labels(method, estimator).observe(seconds)
+
+    def set_queue_depth(self, estimator: str, depth: int) -> None:
+        self.queue_depth.labels(estimator).set(depth)
+
+    def set_streams(self, count: int) -> None:
+        self.streams.set(count)
+
+    def observe_batch(self, estimator: str, size: int) -> None:
+        self.batch_size.labels(estimator).observe(size)
+
+    def count(self, code: str, method: str | None = None, estimator: str | None = None) -> float:
+        """Sum of `flextrack_requests_total` over the labels not given (for tests and benchmarks)."""
+        total = 0.0
+        for metric in self.registry.collect():
+            for sample in metric.samples:
+                if sample.name != "flextrack_requests_total" or sample.labels["code"] != code:
+                    continue
+                if method not in (None, sample.labels["method"]) or estimator not in (None, sample.labels["estimator"]):
+                    continue
+                total += sample.value
+        return total
+
+    def serve_http(self, port: int, host: str = "0.0.0.0"):
+        """Expose /metrics on host:port in a daemon thread; returns (http server, thread)."""
+        return start_http_server(port, addr=host, registry=self.registry)

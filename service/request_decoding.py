@@ -1,0 +1,140 @@
+"""Wire messages -> checked numpy values; every problem is an `InvalidInput` a person can act on."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from estimators.base import InvalidInput
+from flextrack.geometry.camera import PinholeCamera
+from flextrack.v1 import pose_estimation_pb2 as pb
+
+DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)  # what OpenCV accepts
+_FORMATS = {pb.Image.JPEG: "JPEG", pb.Image.PNG: "PNG"}
+
+
+def _finite(name: str, *values: float) -> None:
+    if not all(map(math.isfinite, values)):
+        raise InvalidInput(f"{name} must be finite numbers, got {list(values)}")
+
+
+def decode_camera(intr: pb.Intrinsics) -> PinholeCamera | None:
+    """The request's camera, or None when it carries no intrinsics at all."""
+    fx, fy, cx, cy, width, height = intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height
+    distortion = tuple(intr.distortion)
+    if not (fx or fy or cx or cy or width or height or distortion):
+        return None
+    _finite("intrinsics fx, fy, cx, cy", fx, fy, cx, cy)
+    _finite("intrinsics distortion", *distortion)
+    if fx <= 0 or fy <= 0:
+        raise InvalidInput(f"intrinsics fx and fy must be positive, got fx={fx}, fy={fy}")
+    if width == 0 or height == 0:
+        raise InvalidInput(f"intrinsics width and height must be positive, got {width}x{height}")
+    if len(distortion) not in DISTORTION_LENGTHS:
+        raise InvalidInput(f"distortion needs one of {DISTORTION_LENGTHS} coefficients (OpenCV order), "
+                           f"got {len(distortion)}")
+    return PinholeCamera(fx, fy, cx, cy, width, height, distortion)
+
+
+def decode_keypoints(keypoints) -> np.ndarray:
+    """(N, 3) array of id, u, v."""
+    if not keypoints:
+        return np.zeros((0, 3))
+    kp = np.array([(k.id, k.u, k.v) for k in keypoints], dtype=float).reshape(-1, 3)
+    if not np.all(np.isfinite(kp)):
+        raise InvalidInput("keypoint coordinates must be finite numbers")
+    return kp
+
+
+def _jpeg_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a JPEG's frame header (SOFn segment), None when it has none."""
+    if data[:2] != b"\xff\xd8":
+        return None
+    i = 2
+    while i + 9 <= len(data):
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+        elif marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length field
+            i += 2
+        elif 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # SOFn: precision, height, width
+            return int.from_bytes(data[i + 7:i + 9], "big"), int.from_bytes(data[i + 5:i + 7], "big")
+        else:
+            i += 2 + int.from_bytes(data[i + 2:i + 4], "big")
+    return None
+
+
+def _png_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a PNG's IHDR chunk, None when the signature or IHDR is missing."""
+    if data[:8] != b"\x89PNG\r\n\x1a\n" or data[12:16] != b"IHDR" or len(data) < 24:
+        return None
+    return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+
+
+_HEADER_READERS = {pb.Image.JPEG: _jpeg_size, pb.Image.PNG: _png_size}
+
+
+def _check_declared(image: pb.Image, camera: PinholeCamera | None) -> None:
+    if image.width == 0 or image.height == 0:
+        raise InvalidInput(f"image width and height must be positive, got {image.width}x{image.height}")
+    if camera is not None and (image.width, image.height) != (camera.width, camera.height):
+        raise InvalidInput(f"image is {image.width}x{image.height} but the intrinsics are for "
+                           f"{camera.width}x{camera.height}")
+    if image.encoding not in (pb.Image.JPEG, pb.Image.PNG, pb.Image.RAW_RGB8, pb.Image.RAW_GRAY8):
+        raise InvalidInput(f"image encoding must be JPEG, PNG, RAW_RGB8 or RAW_GRAY8, got {image.encoding}")
+
+
+def _raw_channels(image: pb.Image, data: bytes) -> int:
+    channels = 3 if image.encoding == pb.Image.RAW_RGB8 else 1
+    expected = image.width * image.height * channels
+    if len(data) != expected:
+        raise InvalidInput(f"{pb.Image.Encoding.Name(image.encoding)} image of {image.width}x{image.height} needs "
+                           f"{expected} bytes, got {len(data)}")
+    return channels
+
+
+def _check(image: pb.Image, data: bytes, camera: PinholeCamera | None) -> None:
+    _check_declared(image, camera)
+    if image.encoding in _FORMATS:
+        size = _HEADER_READERS[image.encoding](data)
+        if size is None:
+            raise InvalidInput(f"image data is not a readable {_FORMATS[image.encoding]} file")
+        if size != (image.width, image.height):
+            raise InvalidInput(f"image declared {image.width}x{image.height} but is {size[0]}x{size[1]}")
+    else:
+        _raw_channels(image, data)
+
+
+# `image.data` copies the bytes at every access: each function below reads it once.
+
+def check_image(image: pb.Image, camera: PinholeCamera | None) -> None:
+    """Validate an image from its header only, for estimators that never look at pixels.
+
+    Reading the size from the JPEG/PNG header takes microseconds; a full decode of a 640x480 JPEG
+    takes milliseconds, which would dominate the cost of a ground-truth oracle.
+    """
+    data = image.data
+    if data:
+        _check(image, data, camera)
+
+
+def decode_image(image: pb.Image, camera: PinholeCamera | None) -> np.ndarray | None:
+    """HxWx3 uint8 RGB (or HxW for RAW_GRAY8), None when the request has no image."""
+    data = image.data
+    if not data:
+        return None
+    _check(image, data, camera)
+    if image.encoding in _FORMATS:
+        bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise InvalidInput(f"image data could not be decoded as {_FORMATS[image.encoding]}")
+        if bgr.shape[:2] != (image.height, image.width):
+            raise InvalidInput(f"image declared {image.width}x{image.height} but is {bgr.shape[1]}x{bgr.shape[0]}")
+        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    channels = _raw_channels(image, data)
+    shape = (image.height, image.width, 3) if channels == 3 else (image.height, image.width)
+    return np.frombuffer(data, np.uint8).reshape(shape).copy()

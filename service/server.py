@@ -1,0 +1,187 @@
+"""The grpc.aio server: PoseEstimation + health + reflection, run in the foreground or a thread.
+
+`serve` is what `flextrack serve` runs: it starts listening at once with health NOT_SERVING,
+loads the estimators, turns SERVING, and on SIGTERM/SIGINT stops taking calls, lets in-flight
+ones finish within the grace period and returns 0. `BackgroundServer` runs the same server on a
+free loopback port in a thread of its own, for runners, the demo and tests.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import gc
+import json
+import logging
+import signal
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Self
+
+import grpc
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection
+
+from estimators.registry import EstimatorRegistry
+from flextrack.v1 import pose_estimation_pb2 as pb
+from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
+from service.estimation import EstimationService
+from service.servicer import PoseEstimationServicer
+
+log = logging.getLogger("flextrack.service")
+
+SERVICE_NAME = pb.DESCRIPTOR.services_by_name["PoseEstimation"].full_name
+DEFAULT_MAX_MESSAGE_MB = 8
+DEFAULT_GRACE_S = 5.0
+DEFAULT_WORKERS = 4
+
+
+class JsonLogFormatter(logging.Formatter):
+    """One JSON object a line: time, level, logger, message and any `extra=` fields."""
+
+    _STANDARD = set(vars(logging.makeLogRecord({}))) | {"message", "asctime", "taskName"}
+
+    def format(self, record: logging.LogRecord) -> str:
+        doc = {"ts": time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created)) + f".{int(record.msecs):03d}Z",
+               "level": record.levelname, "logger": record.name, "msg": record.getMessage()}
+        doc.update({k: v for k, v in vars(record).items() if k not in self._STANDARD})
+        if record.exc_info:
+            doc["exc"] = self.formatException(record.exc_info)
+        return json.dumps(doc, default=str)
+
+
+def configure_logging(level: str = "INFO") -> None:
+    handler = logging.StreamHandler()
+    handler.setFormatter(JsonLogFormatter())
+    logging.basicConfig(level=level.upper(), handlers=[handler], force=True)
+
+
+@dataclass
+class RunningServer:
+    server: grpc.aio.Server
+    port: int
+    servicer: PoseEstimationServicer
+    health: health.aio.HealthServicer
+
+    async def set_registry(self, registry: EstimatorRegistry) -> None:
+        """Start answering with these estimators; health turns SERVING once they are all ready."""
+        self.servicer.service = EstimationService(registry)
+        status = health_pb2.HealthCheckResponse.SERVING if registry.ready else health_pb2.HealthCheckResponse.NOT_SERVING
+        for name in ("", SERVICE_NAME):
+            await self.health.set(name, status)
+
+    async def stop(self, grace_s: float) -> None:
+        await self.health.enter_graceful_shutdown()
+        await self.server.stop(grace_s)
+
+
+async def start_server(host: str, port: int, executor: ThreadPoolExecutor,
+                       max_message_mb: float = DEFAULT_MAX_MESSAGE_MB) -> RunningServer:
+    """Listen on host:port (0 = any free port) with health NOT_SERVING and no estimators yet."""
+    max_bytes = int(max_message_mb * 1024 * 1024)
+    server = grpc.aio.server(options=[("grpc.max_receive_message_length", max_bytes),
+                                      ("grpc.max_send_message_length", max_bytes)])
+    servicer = PoseEstimationServicer(executor)
+    pb_grpc.add_PoseEstimationServicer_to_server(servicer, server)
+    health_servicer = health.aio.HealthServicer()
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    reflection.enable_server_reflection((SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME), server)
+    for name in ("", SERVICE_NAME):
+        await health_servicer.set(name, health_pb2.HealthCheckResponse.NOT_SERVING)
+    bound = server.add_insecure_port(f"{host}:{port}")
+    if bound == 0:
+        raise OSError(f"cannot listen on {host}:{port}")
+    await server.start()
+    return RunningServer(server, bound, servicer, health_servicer)
+
+
+async def serve(load_registry: Callable[[], EstimatorRegistry], host: str = "0.0.0.0", port: int = 50051,
+                max_message_mb: float = DEFAULT_MAX_MESSAGE_MB, grace_s: float = DEFAULT_GRACE_S,
+                workers: int = DEFAULT_WORKERS, on_serving: Callable[[int], None] | None = None) -> int:
+    """Run until SIGTERM/SIGINT; 0 after a graceful stop, 1 when the estimators fail to load.
+
+    `on_serving(port)` is called once the server is SERVING (the benchmark learns its port so).
+    """
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    with ThreadPoolExecutor(workers, thread_name_prefix="estimator") as executor:
+        running = await start_server(host, port, executor, max_message_mb)
+        log.info("listening", extra={"address": f"{host}:{running.port}", "max_message_mb": max_message_mb})
+        try:
+            registry = await loop.run_in_executor(executor, load_registry)
+        except Exception as exc:  # noqa: BLE001 - any load failure: one clean log line and exit 1, no trace
+            log.error("estimators failed to load", extra={"error": str(exc)})
+            await running.stop(0)
+            return 1
+        await running.set_registry(registry)
+        gc.freeze()  # the loaded models and modules never die: keep them out of every later GC pass
+        log.info("serving", extra={"estimators": registry.names(), "default": registry.default})
+        if on_serving is not None:
+            on_serving(running.port)
+        await stop.wait()
+        log.info("shutting down", extra={"grace_s": grace_s})
+        await running.stop(grace_s)
+    log.info("stopped")
+    return 0
+
+
+class BackgroundServer:
+    """The server in a background thread on 127.0.0.1, port chosen by the OS.
+
+        with BackgroundServer(registry) as srv:
+            channel = grpc.insecure_channel(srv.address)
+    """
+
+    def __init__(self, registry: EstimatorRegistry, host: str = "127.0.0.1", port: int = 0,
+                 max_message_mb: float = DEFAULT_MAX_MESSAGE_MB, grace_s: float = 1.0, workers: int = DEFAULT_WORKERS):
+        self.registry = registry
+        self._host, self._port, self._max_message_mb = host, port, max_message_mb
+        self._grace_s, self._workers = grace_s, workers
+        self._started = threading.Event()
+        self._error: BaseException | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop: asyncio.Event | None = None
+        self._thread: threading.Thread | None = None
+        self.port = 0
+
+    @property
+    def address(self) -> str:
+        return f"{self._host}:{self.port}"
+
+    async def _main(self) -> None:
+        self._loop, self._stop = asyncio.get_running_loop(), asyncio.Event()
+        with ThreadPoolExecutor(self._workers, thread_name_prefix="estimator") as executor:
+            try:
+                running = await start_server(self._host, self._port, executor, self._max_message_mb)
+                await running.set_registry(self.registry)
+            except Exception as exc:  # noqa: BLE001 - re-raised in the thread that called start()
+                self._error = exc
+                self._started.set()
+                return
+            self.port = running.port
+            self._started.set()
+            await self._stop.wait()
+            await running.stop(self._grace_s)
+
+    def start(self) -> Self:
+        self._thread = threading.Thread(target=asyncio.run, args=(self._main(),), name="flextrack-server", daemon=True)
+        self._thread.start()
+        self._started.wait()
+        if self._error is not None:
+            raise RuntimeError(f"server failed to start: {self._error}") from self._error
+        return self
+
+    def stop(self) -> None:
+        if self._thread is not None and self._thread.is_alive():
+            self._loop.call_soon_threadsafe(self._stop.set)
+            self._thread.join()
+
+    def __enter__(self) -> Self:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()

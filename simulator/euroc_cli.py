@@ -1,0 +1,40 @@
+"""`flextrack convert-euroc`: a EuRoC recording as a sequence folder with a virtual object."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--euroc", type=Path, default=Path("../shared/data/euroc_v1_02_medium"),
+                        help="EuRoC folder (imu0.csv, groundtruth.csv, cam0/imu0 sensor yaml, or mav0/)")
+    parser.add_argument("--out", type=Path, required=True, help="sequence folder to write")
+    parser.add_argument("--fps", type=float, default=None, help="frame rate (default: cam0's, 20 Hz)")
+    parser.add_argument("--object", default="default", help="'default' or the path of a BOP .ply model (mm)")
+    parser.add_argument("--object-id", default=None)
+    parser.add_argument("--no-plots", action="store_true", help="skip the trajectory / IMU pictures")
+
+
+def run(args: argparse.Namespace) -> int:
+    from datasets.sequence import load
+    from simulator.euroc_convert import convert_euroc
+    from simulator.plots import plot_sequence
+
+    try:
+        root = convert_euroc(args.euroc, args.out, fps=args.fps,
+                             object_path=None if args.object == "default" else args.object, object_id=args.object_id)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"flextrack convert-euroc: {exc}", file=sys.stderr)
+        return 2
+    seq = load(root)
+    placement = seq.meta["placement"]
+    d = placement["distance_m_min_median_max"]
+    print(f"wrote {root}: {len(seq.frame_ids)} frames, {len(seq.imu.t_ns)} IMU samples; object at "
+          f"{[round(x, 3) for x in placement['centre_W']]} (world), seen whole in "
+          f"{100 * placement['visible_fraction']:.0f}% of frames at {d[0]:.2f}..{d[2]:.2f} m (median {d[1]:.2f})")
+    if not args.no_plots:
+        for path in plot_sequence(root):
+            print(f"wrote {path}")
+    return 0

@@ -1,0 +1,136 @@
+"""Real data in: a EuRoC recording (real IMU, Vicon ground truth, cam0 calibration) as a sequence folder.
+
+The IMU and the ground truth are copied unchanged; the camera is EuRoC's cam0 (752x480, radtan
+distortion, T_BS of cam0 is our T_BC). There are no images of an object, so a virtual object is
+placed in the Vicon world where cam0 sees it for as much of the run as possible: candidate points
+are put on the optical axes of the frames at several depths, and the one that projects inside the
+image (with a margin for the object's size) at a comfortable distance in the most frames wins.
+The object stands upright (world z is up in EuRoC's Vicon frame) and faces the cameras. Frames
+are at cam0's 20 Hz or any rate asked; their camera poses are the Vicon body poses interpolated at
+the frame times and moved to cam0 by T_BC.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from datasets import euroc, kalibr
+from datasets.sequence import Sequence
+from flextrack.geometry import se3, so3
+from flextrack.geometry.camera import PinholeCamera
+from simulator import default_object
+from simulator.render import load_model
+from simulator.sequence_writer import bop_obj_id_of, install_model, write_sequence
+
+MIN_DISTANCE_M, MAX_DISTANCE_M = 0.6, 3.0
+CANDIDATE_DEPTHS_M = (0.8, 1.2, 1.6, 2.0, 2.5)
+IMU_LEAD_S = 1.0  # the IMU starts at least this long before the first frame
+
+
+@dataclass
+class Placement:
+    centre_W: np.ndarray  # the object's centre in the world
+    visible_fraction: float  # frames that see the whole object at MIN..MAX distance
+    distance_m: tuple[float, float, float]  # min, median, max over the frames that see it
+
+
+def visibility(points_W: np.ndarray, T_WC: np.ndarray, camera: PinholeCamera, radius_m: float) -> np.ndarray:
+    """(P, F) bool: point p is in front of frame f's camera at a good distance, with a disc of
+    `radius_m` around it inside the image."""
+    T_CW = np.linalg.inv(T_WC)
+    pc = np.einsum("fij,pj->pfi", T_CW[:, :3, :3], points_W) + T_CW[None, :, :3, 3]
+    z = pc[..., 2]
+    safe_z = np.where(z > 1e-6, z, 1e-6)
+    u = camera.fx * pc[..., 0] / safe_z + camera.cx
+    v = camera.fy * pc[..., 1] / safe_z + camera.cy
+    margin = camera.fx * radius_m / safe_z
+    dist = np.linalg.norm(pc, axis=-1)
+    return ((z > 0) & (dist >= MIN_DISTANCE_M) & (dist <= MAX_DISTANCE_M)
+            & (u - margin >= 0) & (u + margin <= camera.width - 1)
+            & (v - margin >= 0) & (v + margin <= camera.height - 1))
+
+
+def place_object(T_WC: np.ndarray, camera: PinholeCamera, radius_m: float) -> Placement:
+    """The candidate point seen whole in the most frames (ties: the nearer median distance to 1.2 m)."""
+    every = max(1, len(T_WC) // 150)
+    origins, axes = T_WC[::every, :3, 3], T_WC[::every, :3, 2]
+    candidates = (origins[:, None] + np.asarray(CANDIDATE_DEPTHS_M)[None, :, None] * axes[:, None]).reshape(-1, 3)
+    seen = visibility(candidates, T_WC, camera, radius_m)
+    score = seen.mean(axis=1)
+    best = int(np.argmax(score))
+    dist = np.linalg.norm(T_WC[seen[best], :3, 3] - candidates[best], axis=1)
+    stats = (float(dist.min()), float(np.median(dist)), float(dist.max())) if len(dist) else (0.0, 0.0, 0.0)
+    return Placement(candidates[best], float(score[best]), stats)
+
+
+def convert_euroc(euroc_dir: str | Path, out_dir: str | Path, *, fps: float | None = None,
+                  object_path: str | Path | None = None, object_id: str | None = None) -> Path:
+    """Write the sequence folder `out_dir` from a EuRoC folder holding imu0.csv, groundtruth.csv,
+    cam0_sensor.yaml and imu0_sensor.yaml (or the mav0/ layout: imu0/data.csv, ...)."""
+    src = Path(euroc_dir)
+    paths = _find_files(src)
+    imu = euroc.read_imu(paths["imu"])
+    gt = euroc.read_groundtruth(paths["gt"])
+    noise, _ = kalibr.read_imu_sensor(paths["imu_yaml"])
+    cam = kalibr.read_camera_sensor(paths["cam_yaml"])
+    camera = PinholeCamera.from_K(cam.K, cam.width, cam.height, tuple(float(x) for x in cam.distortion))
+    fps = float(fps or cam.rate_hz)
+    if fps <= 0:
+        raise ValueError("fps must be positive")
+
+    gt_poses = np.stack([se3.from_quat_translation(q, p) for q, p in zip(gt.q_WB, gt.p_WB)])
+    first = max(int(gt.t_ns[0]), int(imu.t_ns[0]) + int(IMU_LEAD_S * 1e9))
+    last = min(int(gt.t_ns[-1]), int(imu.t_ns[-1]))
+    if last <= first:
+        raise ValueError(f"{src}: the IMU and the ground truth do not overlap by more than {IMU_LEAD_S} s")
+    frame_t = np.arange(first, last + 1, round(1e9 / fps), dtype=np.int64)
+    T_WB = np.stack([se3.interpolate_at(gt.t_ns, gt_poses, int(t)) for t in frame_t])
+    T_WC = T_WB @ cam.T_BS
+
+    source = Path(object_path) if object_path is not None else default_object.DEFAULT_DIR / "obj_000001.ply"
+    if object_id is None:
+        object_id = default_object.OBJECT_ID if object_path is None else source.stem
+    bop_obj_id = default_object.BOP_OBJ_ID if object_path is None else bop_obj_id_of(source)
+    root = Path(out_dir)
+    model = install_model(source, root, bop_obj_id)
+    vertices = np.asarray(load_model(model).vertices)
+    centre_O = (vertices.min(axis=0) + vertices.max(axis=0)) / 2
+    placement = place_object(T_WC, camera, radius_m=float(np.linalg.norm(vertices - centre_O, axis=1).max()))
+    facing = np.median(T_WC[:, :3, 3], axis=0) - placement.centre_W  # turn the object's +x to the cameras
+    R_WO = so3.exp(np.array([0.0, 0.0, np.arctan2(facing[1], facing[0])]))
+    T_WO = se3.make(R_WO, placement.centre_W - R_WO @ centre_O)
+    T_CW = np.linalg.inv(T_WC)
+    ids = np.arange(len(frame_t))
+    seq = Sequence(
+        root=root, imu=imu, imu_noise=noise, frame_ids=ids, frame_times_ns=frame_t,
+        gt_T_CO={int(i): T_CW[i] @ T_WO for i in ids}, camera=camera, T_BC=cam.T_BS, T_WO=T_WO,
+        object_id=object_id, bop_obj_id=bop_obj_id, model_path=model, groundtruth=gt,
+        meta={
+            "converter": {"source": str(src.resolve()), "fps": fps, "object": str(object_path or "default"),
+                          "imu_lead_s": IMU_LEAD_S},
+            "placement": {"centre_W": placement.centre_W.tolist(), "visible_fraction": placement.visible_fraction,
+                          "distance_m_min_median_max": list(placement.distance_m)},
+            "times_ns": {"imu_start": int(imu.t_ns[0]), "end": int(last)},
+        },
+    )
+    write_sequence(seq)
+    return root
+
+
+def _find_files(src: Path) -> dict[str, Path]:
+    """The four inputs, in the flat layout of shared/data or in EuRoC's mav0 layout."""
+    layouts = [
+        {"imu": "imu0.csv", "gt": "groundtruth.csv", "imu_yaml": "imu0_sensor.yaml", "cam_yaml": "cam0_sensor.yaml"},
+        {"imu": "imu0/data.csv", "gt": "state_groundtruth_estimate0/data.csv", "imu_yaml": "imu0/sensor.yaml",
+         "cam_yaml": "cam0/sensor.yaml"},
+    ]
+    for base in (src, src / "mav0"):
+        for layout in layouts:
+            paths = {k: base / v for k, v in layout.items()}
+            if all(p.is_file() for p in paths.values()):
+                return paths
+    raise FileNotFoundError(f"{src} holds no EuRoC recording (need imu0.csv, groundtruth.csv, "
+                            "imu0_sensor.yaml, cam0_sensor.yaml, or the mav0/ layout)")

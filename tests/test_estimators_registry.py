@@ -1,0 +1,93 @@
+"""Registry: estimators from TOML (paths relative to the file), from entry points, clear errors."""
+
+import textwrap
+from pathlib import Path
+
+import pytest
+import trimesh
+
+from benchmarks.toy_sequence import write_orbit_sequence
+from estimators.base import UnknownEstimator
+from estimators.gt_oracle import GtOracleEstimator
+from estimators.pnp import PnpEstimator
+from estimators.registry import EstimatorRegistry, known_kinds
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture
+def config(tmp_path) -> Path:
+    (tmp_path / "models").mkdir()
+    trimesh.creation.box(extents=(80.0, 60.0, 40.0)).export(tmp_path / "models" / "box.ply")
+    write_orbit_sequence(tmp_path / "seqs" / "orbit", frames=5)
+    path = tmp_path / "conf" / "server.toml"
+    path.parent.mkdir()
+    path.write_text(textwrap.dedent("""
+        [server]
+        default_estimator = "pnp"
+        [objects.box]
+        model = "../models/box.ply"
+        [[estimators]]
+        name = "gt"
+        kind = "gt_oracle"
+        [estimators.params]
+        sequence_roots = ["../seqs"]
+        noise_t_m = 0.001
+        [[estimators]]
+        name = "pnp"
+        kind = "pnp"
+        objects = ["box"]
+    """))
+    return path
+
+
+def test_config_builds_the_named_estimators_with_relative_paths(config):
+    registry = EstimatorRegistry.from_config(config)
+    assert registry.names() == ["gt", "pnp"] and registry.default == "pnp"
+    gt = registry.get("gt")
+    assert isinstance(gt, GtOracleEstimator) and gt.sequences == ["orbit"] and gt.noise_t_m == 0.001
+    assert isinstance(registry.get(""), PnpEstimator) and registry.get("pnp").objects == ["box"]
+    assert registry.ready
+    with pytest.raises(UnknownEstimator, match="available: \\['gt', 'pnp'\\]"):
+        registry.get("pvnet")
+
+
+@pytest.mark.parametrize("edit, message", [
+    (('kind = "pnp"', 'kind = "magic"'), "unknown kind 'magic'; known kinds: .*gt_oracle.*pnp"),
+    (("noise_t_m", "noise_tm"), "unknown parameter.*noise_tm"),
+    (('objects = ["box"]', 'objects = ["cup"]'), "cup"),
+    (('default_estimator = "pnp"', 'default_estimator = "x"'), "default estimator 'x'"),
+    (("[server]", "[server"), "not valid TOML"),
+])
+def test_config_mistakes_get_clear_errors(config, edit, message):
+    config.write_text(config.read_text().replace(*edit))
+    with pytest.raises(Exception, match=message):
+        EstimatorRegistry.from_config(config)
+
+
+def test_a_third_party_kind_is_found_through_its_entry_point(tmp_path, monkeypatch, config):
+    """A package installed beside flextrack (a dist-info with an entry point) adds a kind."""
+    (tmp_path / "thirdparty_est.py").write_text(textwrap.dedent("""
+        from estimators.base import Estimator
+        class Constant(Estimator):
+            kind = "constant"
+            def __init__(self, spec):
+                super().__init__(spec.name, spec.object_ids)
+                self.value = spec.params["value"]
+    """))
+    dist = tmp_path / "thirdparty_est-1.0.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: thirdparty-est\nVersion: 1.0\n")
+    (dist / "entry_points.txt").write_text("[flextrack.estimators]\nconstant = thirdparty_est:Constant\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert "constant" in known_kinds()
+    config.write_text(config.read_text() + '[[estimators]]\nname = "c"\nkind = "constant"\n[estimators.params]\nvalue = 7\n')
+    assert EstimatorRegistry.from_config(config).get("c").value == 7
+
+
+def test_the_default_config_loads():
+    if not (REPO / "assets/objects/default/models/obj_000001.ply").exists():
+        pytest.skip("the default object model assets/objects/default is absent")
+    registry = EstimatorRegistry.from_config(REPO / "service/default_config.toml")
+    assert {"gt_oracle", "gt_noisy", "pnp"} <= set(registry.names())
+    assert registry.get("gt_noisy").noise_t_m == 0.003

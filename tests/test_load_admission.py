@@ -1,0 +1,111 @@
+"""Overload: past the admission bound the server refuses frames (Track: UNAVAILABLE, Estimate:
+RESOURCE_EXHAUSTED), stays up, never lets more frames in than the bound, and counts it all in
+its Prometheus metrics."""
+
+from __future__ import annotations
+
+import time
+import urllib.request
+
+import grpc
+import numpy as np
+import pytest
+from grpc_harness import serve
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+from estimators.base import EstimateInput, EstimateOutput, Estimator, Status
+from estimators.registry import EstimatorRegistry
+from flextrack.v1 import pose_estimation_pb2 as pb
+from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
+from loadtest import runner, workload
+from service.admission import AdmissionInterceptor
+from service.metrics import ServiceMetrics
+
+
+class SlowEstimator(Estimator):
+    """A backend that needs 20 ms a frame off the GIL (as a network on an accelerator would)."""
+
+    kind, version = "slow", "1"
+
+    def __init__(self, seconds: float = 0.02):
+        super().__init__("slow", ["obj"])
+        self.seconds, self.in_progress, self.most_in_progress = seconds, 0, 0
+
+    def estimate(self, inp: EstimateInput) -> EstimateOutput:
+        self.in_progress += 1
+        self.most_in_progress = max(self.most_in_progress, self.in_progress)
+        time.sleep(self.seconds)
+        self.in_progress -= 1
+        return EstimateOutput(Status.OK, np.eye(4), 1.0)
+
+
+@pytest.fixture()
+def slow_server():
+    estimator, metrics = SlowEstimator(), ServiceMetrics()
+    admission = AdmissionInterceptor(max_queue=2, metrics=metrics, resolve=lambda name: name or "slow")
+    with serve(EstimatorRegistry([estimator]), interceptors=[admission], workers=4) as address:
+        yield address, estimator, metrics
+
+
+@pytest.mark.parametrize("rpc, refused", [("track", "status:UNAVAILABLE"), ("estimate", "grpc:RESOURCE_EXHAUSTED")])
+def test_overload_refuses_the_excess_and_keeps_serving(slow_server, rpc, refused):
+    address, estimator, metrics = slow_server
+    # capacity: 2 frames in progress x 50 frames/s each = 100 frames/s; offered 8 x 30 = 240 frames/s
+    spec = runner.LoadSpec((address,), clients=8, fps=30, duration_s=1.5, warmup_s=0.3, rpc=rpc)
+    result = runner.run(spec, workload.synthetic(payload_kb=20, frames=4))
+    outcomes = {s.outcome for s in result.samples}
+    assert outcomes == {"OK", refused}
+    assert estimator.most_in_progress <= 2  # the bound held: never more than 2 frames let in
+    with grpc.insecure_channel(address) as channel:  # still up and answering
+        reply = pb_grpc.PoseEstimationStub(channel).Estimate(pb.EstimateRequest(frame_id=7), timeout=5)
+        assert reply.status == pb.EstimateResponse.OK
+    method = "Track" if rpc == "track" else "Estimate"  # the server also counted the warm-up's frames
+    assert metrics.count("RESOURCE_EXHAUSTED", method, "slow") >= sum(s.outcome == refused for s in result.samples)
+    assert metrics.count("OK", method, "slow") >= sum(s.outcome == "OK" for s in result.samples)
+
+
+def test_unbounded_queue_lets_every_frame_in(slow_server):
+    estimator, metrics = SlowEstimator(0.005), ServiceMetrics()
+    with serve(EstimatorRegistry([estimator]), interceptors=[AdmissionInterceptor(0, metrics)]) as address:
+        spec = runner.LoadSpec((address,), clients=3, fps=30, duration_s=0.5, warmup_s=0.2)
+        result = runner.run(spec, workload.synthetic(payload_kb=5, frames=2))
+    assert result.samples and {s.outcome for s in result.samples} == {"OK"}
+    assert metrics.count("RESOURCE_EXHAUSTED") == 0
+
+
+def test_metrics_endpoint_serves_counts_latency_and_queue_depth(slow_server):
+    address, _, metrics = slow_server
+    with grpc.insecure_channel(address) as channel:
+        stub = pb_grpc.PoseEstimationStub(channel)
+        list(stub.Track(iter([pb.EstimateRequest(frame_id=i) for i in range(3)]), timeout=5))
+        with pytest.raises(grpc.RpcError):
+            stub.Estimate(pb.EstimateRequest(estimator="nope"), timeout=5)
+    http_server, _ = metrics.serve_http(0, "127.0.0.1")
+    try:
+        text = urllib.request.urlopen(f"http://127.0.0.1:{http_server.server_port}/metrics", timeout=5).read().decode()
+    finally:
+        http_server.shutdown()
+    assert 'flextrack_requests_total{code="OK",estimator="slow",method="Track"} 3.0' in text
+    assert 'flextrack_requests_total{code="NOT_FOUND",estimator="nope",method="Estimate"} 1.0' in text
+    assert 'flextrack_request_latency_seconds_count{estimator="slow",method="Track"} 3.0' in text
+    assert 'flextrack_queue_depth{estimator="slow"} 0.0' in text
+
+
+def test_negative_bound_is_refused():
+    with pytest.raises(ValueError, match="max_queue and max_streams"):
+        AdmissionInterceptor(-1)
+
+
+def test_stream_bound_refuses_new_devices_at_once_and_keeps_health_open():
+    estimator, metrics = SlowEstimator(0.002), ServiceMetrics()
+    admission = AdmissionInterceptor(0, metrics, max_streams=2)
+    with serve(EstimatorRegistry([estimator]), interceptors=[admission]) as address:
+        spec = runner.LoadSpec((address,), clients=5, fps=30, duration_s=1.0, warmup_s=0.5)
+        result = runner.run(spec, workload.synthetic(payload_kb=5, frames=2))
+        with grpc.insecure_channel(address) as channel:
+            health = health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(), timeout=5)
+    served = {s.client for s in result.samples if s.outcome == "OK"}
+    refused = {s.client for s in result.samples if s.outcome == "grpc:RESOURCE_EXHAUSTED"}
+    assert len(served) == 2 and refused and refused <= set(range(5)) - served  # the first two streams stay
+    assert health.status == health_pb2.HealthCheckResponse.SERVING
+    assert metrics.count("RESOURCE_EXHAUSTED", "Track", "-") >= len([s for s in result.samples if s.client in refused])

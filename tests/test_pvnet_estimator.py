@@ -1,0 +1,100 @@
+"""The `pvnet` estimator: input checks, not-found, the keypoint guard, batching, and the shipped
+model finding the default object's pose on a rendered frame."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("onnxruntime")
+torch = pytest.importorskip("torch")
+
+from estimators.base import EstimateInput, InvalidInput, Status  # noqa: E402
+from estimators.objects import ObjectRegistry, load_object  # noqa: E402
+from estimators.pvnet import PvnetEstimator  # noqa: E402
+from flextrack.geometry import metrics, se3  # noqa: E402
+from flextrack.geometry.camera import PinholeCamera  # noqa: E402
+from training.cli import DEFAULT_OBJECT  # noqa: E402
+from training.export_onnx import export  # noqa: E402
+from training.pvnet_model import PvnetNet  # noqa: E402
+
+SHIPPED = Path(__file__).resolve().parents[1] / "models" / "pvnet_default" / "pvnet.onnx"
+CAMERA = PinholeCamera.linemod()
+
+
+@pytest.fixture(scope="module")
+def registry():
+    return ObjectRegistry([load_object("default", DEFAULT_OBJECT)])
+
+
+@pytest.fixture(scope="module")
+def blind_model(registry, tmp_path_factory):
+    """An untrained network whose mask logit is forced negative: it never sees the object."""
+    torch.manual_seed(0)
+    net = PvnetNet(len(registry.get("default").keypoints), width=8)
+    with torch.no_grad():
+        net.head.bias[0] = -50.0
+    return export(net, tmp_path_factory.mktemp("m") / "blind.onnx", registry.get("default").keypoints)
+
+
+def _input(image, frame_id=0, camera=CAMERA):
+    return EstimateInput(frame_id=frame_id, capture_time_ns=frame_id, camera=camera, image=image)
+
+
+def test_blank_mask_is_object_not_found(registry, blind_model):
+    est = PvnetEstimator(registry, blind_model)
+    out = est.estimate(_input(np.full((480, 640, 3), 128, np.uint8)))
+    assert out.status == Status.OBJECT_NOT_FOUND and "mask" in out.message
+    assert "inference" in out.stage_ms
+
+
+def test_bad_inputs_are_clear_errors(registry, blind_model):
+    est = PvnetEstimator(registry, blind_model)
+    with pytest.raises(InvalidInput, match="image"):
+        est.estimate(_input(None))
+    with pytest.raises(InvalidInput, match="intrinsics"):
+        est.estimate(_input(np.zeros((480, 640, 3), np.uint8), camera=None))
+    with pytest.raises(InvalidInput, match="too small"):
+        est.estimate(_input(np.zeros((8, 8, 3), np.uint8)))
+
+
+def test_model_for_other_keypoints_is_refused(registry, tmp_path):
+    other = export(PvnetNet(9, width=8), tmp_path / "other.onnx", np.zeros((9, 3)))
+    with pytest.raises(ValueError, match="other keypoints"):
+        PvnetEstimator(registry, other)
+    with pytest.raises(FileNotFoundError, match="train one"):
+        PvnetEstimator(registry, tmp_path / "missing.onnx")
+
+
+@pytest.fixture(scope="module")
+def rendered():
+    """Two frames of the default object on the simulator's table, about 0.7 and 1.2 m away."""
+    from simulator.render import Renderer
+    from simulator.scene import make_scene
+
+    verts = load_object("default", DEFAULT_OBJECT).vertices
+    T_WO = se3.make(np.eye(3), [0, 0, -verts[:, 2].min()])
+    poses = []
+    for dist, azimuth in ((0.7, 30.0), (1.2, 200.0)):  # camera 40 degrees above the table, looking at the object
+        el, az = np.radians(40.0), np.radians(azimuth)
+        z = -np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        x = np.cross(z, [0, 0, 1.0])
+        x /= np.linalg.norm(x)
+        T_WC = se3.make(np.stack([x, np.cross(z, x), z], axis=1), T_WO[:3, 3] - dist * z)
+        poses.append(se3.inverse(T_WC) @ T_WO)
+    with Renderer(CAMERA, DEFAULT_OBJECT, scene=make_scene(5), T_WO=T_WO) as renderer:
+        return [(renderer.render(T).rgb, T) for T in poses]
+
+
+@pytest.mark.skipif(not SHIPPED.is_file(), reason=f"no shipped model at {SHIPPED} (train with `flextrack train pvnet`)")
+def test_shipped_model_finds_the_default_object(registry, rendered):
+    est = PvnetEstimator(registry, SHIPPED)
+    verts = registry.get("default").vertices
+    outs = est.estimate_batch([_input(rgb, i) for i, (rgb, _) in enumerate(rendered)])
+    for out, (rgb, T_gt) in zip(outs, rendered):
+        assert out.status == Status.OK, out.message
+        assert metrics.proj_px(out.T_CO, T_gt, CAMERA, verts) < 5.0
+        assert 0 < out.confidence <= 1
+        assert {"inference", "voting", "pnp"} <= set(out.stage_ms)
+    single = est.estimate(_input(rendered[1][0], 1))
+    assert np.allclose(single.T_CO, outs[1].T_CO, atol=1e-6)  # batching does not change the answer

@@ -1,0 +1,64 @@
+"""The live runner, `flextrack track` and `flextrack demo` end to end (real server, real sleeps)."""
+
+import json
+
+import pytest
+
+from client_sdk import TrackerOptions
+from client_sdk.network_model import NetworkOptions
+from datasets import sequence as sequence_io
+from flextrack.cli import main
+from runners import session
+from runners.backends import oracle_registry
+from runners.live import LiveOptions, run_live
+from service.server import BackgroundServer
+from simulator.generate import generate_sequence
+
+
+@pytest.fixture(scope="module")
+def short_seq(tmp_path_factory):
+    root = tmp_path_factory.mktemp("live") / "circular_medium"
+    return sequence_io.load(generate_sequence("circular", "medium", root, duration_s=2.5, fps=60.0, seed=2,
+                                              imu_profile="ideal"))
+
+
+def test_live_run_through_the_sleeping_interceptor(short_seq):
+    seen = []
+    with BackgroundServer(oracle_registry([short_seq.root]), grace_s=0.0) as server:
+        record = run_live(short_seq, server.address, session.model_vertices(short_seq), TrackerOptions(),
+                          LiveOptions(network=NetworkOptions(seed=1), speed=2.0), progress=seen.append,
+                          progress_every_s=0.1)
+    summary = record.summarize()
+    assert summary.frames == len(short_seq.frame_ids)
+    assert summary.requests >= 10 and summary.responses >= summary.requests - 2  # the last may be in flight
+    assert summary.failures == 0
+    assert summary.proj_px < 0.5, summary
+    assert seen and seen[-1].t_s == pytest.approx(seen[-1].total_s)
+
+
+def test_live_run_without_a_server_fails_cleanly(short_seq):
+    with pytest.raises(ConnectionError, match="no backend answered"):
+        run_live(short_seq, "127.0.0.1:1", session.model_vertices(short_seq),
+                 options=LiveOptions(connect_timeout_s=0.3))
+
+
+def test_track_cli_writes_results_and_rejects_bad_input(short_seq, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["track", str(short_seq.root), "--out", str(out), "--backend", "noisy", "--no-plots"]) == 0
+    summary = json.loads((out / f"{short_seq.name}_noisy_summary.json").read_text())
+    assert summary["frames"] == len(short_seq.frame_ids) and summary["proj_px"] < 10
+    assert (out / f"{short_seq.name}_noisy_estimate.tum").stat().st_size > 0
+    assert "| run |" in capsys.readouterr().out
+    assert main(["track", str(tmp_path / "missing"), "--out", str(out)]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert main(["track", str(short_seq.root), "--out", str(out), "--backend", "nope", "--no-plots"]) == 2
+    assert "unknown estimator" in capsys.readouterr().err
+
+
+def test_demo_runs_live_end_to_end(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--duration", "3", "--no-replay"]) == 0
+    text = capsys.readouterr().out
+    assert "tracking LIVE" in text and "| live, noisy |" in text
+    assert (out / "live_noisy_error.png").stat().st_size > 0
+    assert (out / "live_noisy_trajectory.png").stat().st_size > 0
