@@ -46,5 +46,6 @@ class ImuBuffer:
         """Samples with t_from_ns < t <= t_to_ns."""
         return self.samples[bisect_right(self.times, t_from_ns): bisect_right(self.times, t_to_ns)]
 
-    def recent(self, n: int) -> list[tuple]:
-        return self.samples[-n:] if n > 0 else []
+    def recent(self, n: int) -> tuple[list[int], list[tuple]]:
+        """Times and samples of the newest n samples."""
+        return (self.times[-n:], self.samples[-n:]) if n > 0 else ([], [])

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Callable, Iterator
+from collections.abc import Callable, Iterator
 
 import grpc
 
@@ -24,10 +24,10 @@ from client_sdk.network_model import LinkDelays, NetworkOptions
 
 
 class LatencyInterceptor(grpc.UnaryUnaryClientInterceptor, grpc.StreamStreamClientInterceptor):
-    def __init__(self, options: NetworkOptions = NetworkOptions(), *, live: bool = True,
+    def __init__(self, options: NetworkOptions | None = None, *, live: bool = True,
                  on_delay: Callable[[int, LinkDelays], None] | None = None,
                  sleep: Callable[[float], None] = time.sleep):
-        self.options = options
+        self.options = options or NetworkOptions()
         self.live = live
         self.on_delay = on_delay
         self._sleep = sleep

@@ -47,7 +47,7 @@ class NetworkOptions:
             raise ValueError("fixed_payload_bytes must be >= 0 or None")
 
     @classmethod
-    def zero(cls) -> "NetworkOptions":
+    def zero(cls) -> NetworkOptions:
         """No network at all (infinite bandwidth, no delays): the latency-free baseline."""
         return cls(bandwidth_mbps=float("inf"), propagation_ms=0.0, extra_max_ms=0.0, fixed_payload_bytes=0)
 
@@ -64,7 +64,7 @@ class LinkDelays:
 
 def transmission_ns(payload_bytes: int, bandwidth_mbps: float) -> int:
     """Time to push `payload_bytes` through the link, in the paper's binary units."""
-    return int(round(payload_bytes * 8 / (bandwidth_mbps * MB_BITS) * 1e9))
+    return round(payload_bytes * 8 / (bandwidth_mbps * MB_BITS) * 1e9)
 
 
 def extra_delay_ns(opts: NetworkOptions, key: int) -> int:
@@ -72,14 +72,14 @@ def extra_delay_ns(opts: NetworkOptions, key: int) -> int:
     if opts.extra_max_ms == 0:
         return 0
     rng = np.random.default_rng([int(opts.seed) & 0xFFFFFFFF, int(key) & 0xFFFFFFFFFFFFFFFF])
-    return int(round(rng.uniform(0.0, opts.extra_max_ms) * 1e6))
+    return round(rng.uniform(0.0, opts.extra_max_ms) * 1e6)
 
 
 def sample(opts: NetworkOptions, key: int, request_bytes: int, response_bytes: int = 0) -> LinkDelays:
     """Uplink and downlink delays (ns) of request `key` carrying `request_bytes`."""
     up_bytes = request_bytes if opts.fixed_payload_bytes is None else opts.fixed_payload_bytes
     down_bytes = response_bytes if opts.count_downlink_payload else 0
-    prop = int(round(opts.propagation_ms * 1e6))
+    prop = round(opts.propagation_ms * 1e6)
     return LinkDelays(
         uplink_ns=transmission_ns(up_bytes, opts.bandwidth_mbps) + prop + extra_delay_ns(opts, key),
         downlink_ns=transmission_ns(down_bytes, opts.bandwidth_mbps) + prop,

@@ -14,7 +14,10 @@ loose in three places; what is done here instead:
    velocity at the mid-time (exact for constant acceleration). V_bias = V_imu(mid) - V_avg, with
    V_imu(mid) interpolated from the per-sample states. The paper does not say which velocity the
    state gets at t1; here v(t1) = V_imu(t1) - V_bias (V_avg carried to t1 by the IMU's velocity
-   change from the mid-time), scaled by `velocity_gain`.
+   change from the mid-time), scaled by `velocity_gain`. The positions the caller passes need not be
+   the backend's own p_OB: by default the tracker passes the backend's camera-frame translation put
+   into O with the propagated orientation (`TrackerOptions.bscm_imu_orientation`), which removes the
+   backend's orientation noise times the object distance from V_avg.
 3. Accelerometer bias. The paper's a_bias = V_bias / (t1 - t0) is an acceleration in the object
    frame; the bias lives in the body frame, so it is rotated by R_OB(mid)^T before it is added (a
    velocity that is too high means a_O = R (f - b_a) + g_O was too high, so b_a grows). For a

@@ -12,9 +12,9 @@ duration to add on the virtual clock.
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Iterator
 
 PIXEL2_FACTOR = 3185 / 1294  # ~= 2.46
 
@@ -47,7 +47,7 @@ class Slowdown:
 
     def virtual_ns(self, op: str, count: int = 1) -> int:
         """Replay: the stretched duration of `count` operations `op` on the virtual clock."""
-        return int(round(self.factor * self.costs.of(op) * count))
+        return round(self.factor * self.costs.of(op) * count)
 
     @contextmanager
     def stretch(self) -> Iterator[None]:

@@ -51,13 +51,14 @@ class FrameResult:
     request: RefinementRequest | None  # when set, the shell sends this frame to the backend
 
 
-def _as_ns(value, name: str) -> int:
-    if isinstance(value, bool):  # noqa: TRY004 -- ValueError for all bad input, as the API promises
-        raise ValueError(f"{name} must be an integer number of nanoseconds, got {value!r}")
+def _as_int(value, name: str, what: str = "an integer number of nanoseconds") -> int:
+    # ValueError for every bad input (not TypeError), as the API promises the shells
+    if isinstance(value, bool):
+        raise ValueError(f"{name} must be {what}, got {value!r}")
     try:
         return operator.index(value)
     except TypeError:
-        raise ValueError(f"{name} must be an integer number of nanoseconds, got {value!r}") from None
+        raise ValueError(f"{name} must be {what}, got {value!r}") from None
 
 
 def _rot(R: tuple, u: tuple) -> tuple:
@@ -93,8 +94,8 @@ class Tracker:
         self.options = options if options is not None else TrackerOptions()
         o = self.options
         T_CB = se3.inverse(np.array(_check_rigid(T_BC, "T_BC")).reshape(4, 4))
-        self._R_CB, self._t_CB = T_CB[:3, :3].copy(), T_CB[:3, 3].copy()
-        self._R_CB_f, self._t_CB_f = tuple(self._R_CB.ravel().tolist()), tuple(self._t_CB.tolist())
+        # plain floats: the per-frame and per-response pose conversions are written out on them
+        self._R_CB_f, self._t_CB_f = tuple(T_CB[:3, :3].ravel().tolist()), tuple(T_CB[:3, 3].tolist())
         self.camera = camera
         self.inspector = PoseInspector(camera, bbox_corners_O, o.area_divisor, o.px_error, o.px_motion,
                                        o.base_rate, o.near_m)
@@ -146,7 +147,7 @@ class Tracker:
 
         ValueError, with no state change, for non-finite values or a time not after the previous one.
         """
-        t = _as_ns(t_ns, "t_ns")
+        t = _as_int(t_ns, "t_ns")
         try:
             gx, gy, gz = (float(v) for v in gyro)
             ax, ay, az = (float(v) for v in accel)
@@ -206,7 +207,7 @@ class Tracker:
         """T_CO at t_ns: re-propagated from the stored state before it, extrapolated past the newest
         IMU sample with its rates held. None before initialisation; ValueError for times older than
         the IMU buffer or before tracking started."""
-        t = _as_ns(t_ns, "t_ns")
+        t = _as_int(t_ns, "t_ns")
         if self._c is None:
             return None
         x = self._state_at(t)
@@ -217,7 +218,7 @@ class Tracker:
     # ------------------------------------------------------------------ PIM + PRM requests
     def add_frame(self, t_ns: int) -> FrameResult:
         """The pose at this frame, its PIA status, and the backend request the PRM wants sent (if any)."""
-        t = _as_ns(t_ns, "t_ns")
+        t = _as_int(t_ns, "t_ns")
         if self._last_frame_t is not None and t <= self._last_frame_t:
             raise ValueError(f"frame at {t} ns is not after the previous one at {self._last_frame_t} ns")
         fps = self.options.fps
@@ -274,7 +275,7 @@ class Tracker:
     def on_backend_failure(self, request_id: int) -> bool:
         """The shell lost this request (timeout, broken stream): the next frame asks again.
         True when it was the live request, False when it was already stale."""
-        if not self._book.is_live(int(request_id)):
+        if not self._book.is_live(_as_int(request_id, "request_id", "an integer")):
             return False
         self._book.in_flight = None
         return True
@@ -286,8 +287,8 @@ class Tracker:
         ValueError, with no state change, when the capture time differs from the request's frame
         time or the pose is not a rigid transform.
         """
-        rid = int(request_id)
-        t0 = _as_ns(capture_t_ns, "capture_t_ns")
+        rid = _as_int(request_id, "request_id", "an integer")
+        t0 = _as_int(capture_t_ns, "capture_t_ns")
         if not self._book.is_live(rid):
             return self._outcome(ResponseOutcome.STALE, None)
         req = self._book.in_flight
@@ -372,6 +373,7 @@ class Tracker:
         if st is None:
             z = np.zeros(3)
             st = TrackerState(self.now_ns or 0, np.eye(3), z, z, z, z, z)
-        t = st.t_ns
-        rows = [((s[0] - t) * 1e-9,) + s[1:] for s in self._buf.recent(self.options.state_imu_samples)]
-        return state_codec.encode(st, np.array(rows, dtype=float).reshape(-1, 7))
+        times, samples = self._buf.recent(self.options.state_imu_samples)
+        rows = np.array(samples, dtype=float).reshape(-1, 7)
+        rows[:, 0] = (np.array(times, dtype=np.int64) - st.t_ns) * 1e-9  # exact in integers first
+        return state_codec.encode(st, rows)

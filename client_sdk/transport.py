@@ -18,8 +18,9 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Self
 
 import grpc
 import numpy as np
@@ -94,7 +95,7 @@ class TrackClient:
         self.reconnects = 0
 
     # -- the caller's side ---------------------------------------------------------------------
-    def start(self) -> "TrackClient":
+    def start(self) -> TrackClient:
         for target in (self._run, self._watchdog):
             t = threading.Thread(target=target, name=f"TrackClient-{target.__name__}", daemon=True)
             t.start()
@@ -109,7 +110,7 @@ class TrackClient:
         for t in self._threads:
             t.join(timeout=5.0)
 
-    def __enter__(self) -> "TrackClient":
+    def __enter__(self) -> Self:
         return self.start()
 
     def __exit__(self, *exc) -> None:

@@ -78,11 +78,11 @@ def report(rows: list[list], seed: int, duration_s: float, fps: int) -> str:
     ratio_noisy = means[("bscm_pia_off", "noisy")] / means[("full", "noisy")]
     return "\n".join([
         "# Ablation: BSCM and PIA off, IMU only (paper Figures 5 and 6)", "",
-        f"Seed {seed}; {duration_s:g} s sequences at {fps} FPS; replay through a gRPC server with the paper's network "
-        "model and the Pixel 2 slowdown. Mean 2D projection error in px over all six motion programs.", "",
+        (f"Seed {seed}; {duration_s:g} s sequences at {fps} FPS; replay through a gRPC server with the paper's network "
+        "model and the Pixel 2 slowdown. Mean 2D projection error in px over all six motion programs."), "",
         common.markdown_table(["variant", "GT px", "Noisy px", "GT x full", "Noisy x full"], table), "",
-        f"BSCM+PIA off is {ratio_gt:.1f}x (GT) and {ratio_noisy:.1f}x (Noisy) the full system's error "
-        "(the paper: more than 2x); IMU only drifts without bound.", "",
+        (f"BSCM+PIA off is {ratio_gt:.1f}x (GT) and {ratio_noisy:.1f}x (Noisy) the full system's error "
+        "(the paper: more than 2x); IMU only drifts without bound."), "",
         "![ablation](ablation.png)", "", "![one second of 2D error](sawtooth.png)", "",
         "![2D error over time](ablation_over_time.png)", "",
         "## Per program", "", common.markdown_table(["motion", "level", "backend", "variant", "proj px"], per_program),

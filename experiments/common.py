@@ -5,10 +5,11 @@ whose oracles learn sequences as they are generated, CSV/Markdown writing and a 
 from __future__ import annotations
 
 import csv
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Self
 
 from tqdm import tqdm
 
@@ -58,7 +59,7 @@ class OracleBackend:
         self.in_process = in_process
         self._server = None
 
-    def __enter__(self) -> "OracleBackend":
+    def __enter__(self) -> Self:
         if not self.in_process:
             from service.server import BackgroundServer
 

@@ -73,12 +73,12 @@ def report(rows: list[list], seq, seed: int) -> str:
     full, off = rows[0][3], rows[1][3]
     return "\n".join([
         "# Real IMU: EuRoC V1_02_medium with a Noisy oracle", "",
-        f"{len(seq.frame_ids)} frames at {FPS:g} FPS ({len(seq.gt_T_CO)} with the object in view, scored), the real ADIS16448 IMU at 200 Hz, a virtual object where cam0 "
+        (f"{len(seq.frame_ids)} frames at {FPS:g} FPS ({len(seq.gt_T_CO)} with the object in view, scored), the real ADIS16448 IMU at 200 Hz, a virtual object where cam0 "
         f"sees it ({seq.meta.get('placement', {})}); Noisy backend 3 mm / 0.3 deg per axis, seed {seed}; paper network "
-        "model and Pixel 2 slowdown.", "",
+        "model and Pixel 2 slowdown."), "",
         common.markdown_table(["variant", "position mm", "orientation deg", "2D projection px"], rows), "",
-        f"BSCM {'lowers' if full < off else 'does NOT lower'} the 2D error: {full:.2f} px with it, {off:.2f} px "
-        "without.", "",
+        (f"BSCM {'lowers' if full < off else 'does NOT lower'} the 2D error: {full:.2f} px with it, {off:.2f} px "
+        "without."), "",
         "The paper's Table 4 (its own five RealSense sequences, for scale):", "",
         common.markdown_table(["sequence", "position mm", "orientation deg", "2D projection px"], paper_rows), "",
         "![2D error over time](euroc.png)",

@@ -61,11 +61,11 @@ def report(rows: list[list], seeds: list[int], duration_s: float, in_process: bo
     cells = _cells(rows)
     lines = [
         "# Table 2 rerun: pose errors per motion program, frame rate and backend", "",
-        f"Seeds {seeds}; {duration_s:g} s sequences; backend {'in-process' if in_process else 'a real gRPC server on loopback'}; "
+        (f"Seeds {seeds}; {duration_s:g} s sequences; backend {'in-process' if in_process else 'a real gRPC server on loopback'}; "
         "network 50 Mbps, 10 ms each way, U(0, 30) ms, 100 kB a request; Pixel 2 slowdown 2.46; "
-        f"Noisy backend: 3 mm and 0.3 deg per axis (the paper gives no sigma).", "",
-        "Each cell: ours (mean over seeds, +- spread as the std over seeds when more than one) / the paper; "
-        "position mm / orientation deg / 2D projection px.", ""]
+        f"Noisy backend: 3 mm and 0.3 deg per axis (the paper gives no sigma)."), "",
+        ("Each cell: ours (mean over seeds, +- spread as the std over seeds when more than one) / the paper; "
+        "position mm / orientation deg / 2D projection px."), ""]
     fps_list = sorted({k[2] for k in cells}, key=float)
     programs = [(m, lv) for m in paper.MOTIONS for lv in paper.LEVELS if any(k[:2] == (m, lv) for k in cells)]
     header = ["backend", "fps"] + [f"{m} {lv}" for m, lv in programs]
@@ -86,10 +86,10 @@ def report(rows: list[list], seeds: list[int], duration_s: float, in_process: bo
                 row.append(f"{mean[0]:.2f}/{mean[1]:.2f}/**{mean[2]:.2f}**{spread} vs {p[0]:.2f}/{p[1]:.2f}/{p[2]:.2f}")
             table.append(row)
     lines.append(common.markdown_table(header, table))
-    lines += ["", f"Worst mean 2D error: GT {worst['gt']:.2f} px (limit {GT_LIMIT_PX}, paper 0.69), "
+    lines += ["", (f"Worst mean 2D error: GT {worst['gt']:.2f} px (limit {GT_LIMIT_PX}, paper 0.69), "
               f"Noisy {worst['noisy']:.2f} px (limit {NOISY_LIMIT_PX}, paper 2.33): "
-              f"{'PASS' if worst['gt'] <= GT_LIMIT_PX and worst['noisy'] <= NOISY_LIMIT_PX else 'FAIL'}.",
+              f"{'PASS' if worst['gt'] <= GT_LIMIT_PX and worst['noisy'] <= NOISY_LIMIT_PX else 'FAIL'}."),
               "", "![2D error per cell](table2.png)", "",
-              "Files: `table2.csv` (one row per cell and seed), `trajectories/*.tum` (estimate and ground truth, "
-              "TUM format, readable by evo), `trajectories/*_frames.csv` (per-frame errors)."]
+              ("Files: `table2.csv` (one row per cell and seed), `trajectories/*.tum` (estimate and ground truth, "
+              "TUM format, readable by evo), `trajectories/*_frames.csv` (per-frame errors).")]
     return "\n".join(lines) + "\n"

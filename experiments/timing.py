@@ -57,10 +57,14 @@ def run(out: Path, seed: int = 0, duration_s: float = 30.0, repeats: int = 3, in
         oracle.learn(seq)
         for _ in range(repeats):
             timed: list[TimedTracker] = []
+
+            def wrap(tracker, timed=timed):
+                timed.append(TimedTracker(tracker))
+                return timed[-1]
+
             options = ReplayOptions(network=NetworkOptions(seed=seed), estimator="noisy")
             with oracle.client(options) as backend:
-                replay(seq, backend, model_vertices(seq), TrackerOptions(), options,
-                       wrap=lambda t: timed.append(TimedTracker(t)) or timed[-1])
+                replay(seq, backend, model_vertices(seq), TrackerOptions(), options, wrap=wrap)
             for op in OPERATIONS:
                 samples[op] += timed[0].samples[op]
             bar.update()
@@ -79,11 +83,11 @@ def report(rows: list[list], counts: dict, spec, repeats: int) -> str:
     table = [[r[0], r[1], r[2], r[3], r[4] if r[4] != "" else "-", counts[r[0]]] for r in rows]
     return "\n".join([
         "# Frontend timing (per call)", "",
-        f"{spec.motion} {spec.level} at {spec.fps:g} FPS, {spec.duration_s:g} s, replayed {repeats}x with the Noisy "
+        (f"{spec.motion} {spec.level} at {spec.fps:g} FPS, {spec.duration_s:g} s, replayed {repeats}x with the Noisy "
         f"backend; machine: {platform.machine()} {platform.processor() or ''}, Python {platform.python_version()}. "
-        f"Stretched = raw x {PIXEL2_FACTOR:.2f} (the paper's Pixel 2 emulation); the paper reports stretched figures.",
+        f"Stretched = raw x {PIXEL2_FACTOR:.2f} (the paper's Pixel 2 emulation); the paper reports stretched figures."),
         "",
         common.markdown_table(["operation", "median us", "p99 us", "stretched median us", "paper ms", "calls"], table),
-        "", "pim = `Tracker.add_frame` (pose at the frame, PIA, request decision); prm = `on_backend_response` "
-        "(state reset, BSCM, re-propagation of the buffered IMU); ppm = `add_imu` (one propagation step).",
+        "", ("pim = `Tracker.add_frame` (pose at the frame, PIA, request decision); prm = `on_backend_response` "
+        "(state reset, BSCM, re-propagation of the buffered IMU); ppm = `add_imu` (one propagation step)."),
     ]) + "\n"

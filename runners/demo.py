@@ -2,8 +2,8 @@
 
 1. simulate (seeded) a short sequence: the paper's circular/medium program at 120 FPS with a
    Pixel-2-grade IMU;
-2. start a backend on a loopback port with the built-in estimators ("gt" and "noisy" oracles
-   over that sequence);
+2. start a backend on a loopback port with the service's embedded default config
+   (`service/default_config.toml`: the "gt_oracle" and "gt_noisy" oracles, given that sequence);
 3. track it LIVE: IMU and frames fed in real time, requests over the `Track` stream through the
    latency interceptor (50 Mbps, 10 ms each way, U(0, 30) ms, 100 kB a request) with the Pixel 2
    slowdown, a progress line while it runs;
@@ -23,8 +23,10 @@ from client_sdk.network_model import NetworkOptions
 from client_sdk.slowdown import PIXEL2_FACTOR
 from datasets import sequence as sequence_io
 from runners import session
-from runners.backends import NOISY_R_DEG, NOISY_T_M, oracle_registry
 from runners.results import format_table
+
+# --backend choice -> estimator name in the service's default config
+BACKENDS = {"gt": "gt_oracle", "noisy": "gt_noisy"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -64,10 +66,16 @@ def run(args) -> int:
     except (ValueError, FileNotFoundError) as exc:
         print(f"flextrack demo: cannot simulate the sequence: {exc}", file=sys.stderr)
         return 2
-    registry = oracle_registry([seq.root], noise_seed=args.seed)
+    from service.cli import DEFAULT_CONFIG  # the server extra
+
+    try:
+        registry = session.registry_for(seq, session.RunSpec(config=DEFAULT_CONFIG))
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"flextrack demo: cannot load the default backend config {DEFAULT_CONFIG}: {exc}", file=sys.stderr)
+        return 2
     network = NetworkOptions(seed=args.seed)
     tracker_options = TrackerOptions()
-    print(f"[2/4] backend: estimators {registry.names()} (noisy: {NOISY_T_M * 1e3:g} mm, {NOISY_R_DEG:g} deg per axis)")
+    print(f"[2/4] backend on loopback, {DEFAULT_CONFIG.name}: estimators {registry.names()}")
     print(f"      network: {network.bandwidth_mbps:g} Mbps, {network.propagation_ms:g} ms each way, "
           f"U(0, {network.extra_max_ms:g}) ms extra, {network.fixed_payload_bytes // 1024} kB a request; "
           f"device slowdown x{PIXEL2_FACTOR:.2f} (Pixel 2)")
@@ -75,14 +83,14 @@ def run(args) -> int:
           f"{len(seq.imu.t_ns)} IMU samples")
     runs = []
     try:
-        live = session.track(seq, tracker_options, session.RunSpec(backend=args.backend, network=network, live=True,
-                                                                   seed=args.seed),
+        live = session.track(seq, tracker_options, session.RunSpec(backend=BACKENDS[args.backend], network=network,
+                                                                   live=True),
                              progress=session.print_progress, registry=registry)
         runs.append((f"live, {args.backend}", live))
         if not args.no_replay:
             print("[4/4] replaying in virtual time (bit-identical for one seed) with both backends")
-            for backend in ("gt", "noisy"):
-                spec = session.RunSpec(backend=backend, network=network, seed=args.seed)
+            for backend, estimator in BACKENDS.items():
+                spec = session.RunSpec(backend=estimator, network=network)
                 runs.append((f"replay, {backend}", session.track(seq, tracker_options, spec, registry=registry)))
     except (ConnectionError, RuntimeError) as exc:
         print(f"\nflextrack demo: {exc}", file=sys.stderr)

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import queue
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
@@ -59,8 +59,9 @@ def _timeline(seq: Sequence) -> list[tuple[int, int, int]]:
 
 def run_live(seq: Sequence, address: str, vertices_O: np.ndarray, tracker_options: TrackerOptions | None = None,
              options: LiveOptions = LiveOptions(), progress: Callable[[Progress], None] | None = None,
-             progress_every_s: float = 0.25) -> TrackRecord:
-    """Track `seq` in real time against the server at `address`; raises ConnectionError if it never answers."""
+             progress_every_s: float = 0.25, frame_jpeg: Callable[[int], bytes] | None = None) -> TrackRecord:
+    """Track `seq` in real time against the server at `address`; raises ConnectionError if it never answers.
+    `frame_jpeg(frame_id)` gives the image a request carries (default: the 90 kB stand-in)."""
     if options.speed <= 0:
         raise ValueError(f"speed must be > 0, got {options.speed}")
     tracker = Tracker(tracker_options or TrackerOptions(), seq.camera, seq.T_BC, bbox_corners(vertices_O))
@@ -118,7 +119,8 @@ def run_live(seq: Sequence, address: str, vertices_O: np.ndarray, tracker_option
                 if result.request is not None:
                     request = make_request(
                         frame_id=frame_id, capture_time_ns=result.request.frame_t_ns, session_id=options.session_id,
-                        estimator=options.estimator, object_id=seq.object_id, sequence=seq.name, image=image,
+                        estimator=options.estimator, object_id=seq.object_id, sequence=seq.name,
+                        image=image if frame_jpeg is None else frame_jpeg(frame_id),
                         width=seq.camera.width, height=seq.camera.height, intrinsics=intrinsics,
                         client_state=tracker.state_bytes())
             record.add(frame_id, t_ns, status, result.T_CO, seq.gt_T_CO.get(frame_id))

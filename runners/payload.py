@@ -39,3 +39,23 @@ def stand_in_jpeg(width: int = 640, height: int = 480, n_bytes: int = PAPER_JPEG
         segments.append(_APP15 + (data_len + 2).to_bytes(2, "big") + rng.bytes(data_len))
         pad -= 4 + data_len
     return base[:2] + b"".join(segments) + base[2:]
+
+
+class RenderedJpegs:
+    """JPEG bytes of a sequence's frames for image estimators (PVNet): rendered on demand by the
+    simulator (and kept in the folder's rgb/), so a replay renders only the frames it sends."""
+
+    def __init__(self, seq, quality: int = 90):
+        from simulator.frames import SequenceFrames  # the sim extra: only image runs need it
+
+        self._frames = SequenceFrames(seq)
+        self._quality = int(quality)
+
+    def __call__(self, frame_id: int) -> bytes:
+        rgb = self._frames.frame(int(frame_id)).rgb
+        buf = io.BytesIO()
+        Image.fromarray(rgb).save(buf, format="JPEG", quality=self._quality)
+        return buf.getvalue()
+
+    def close(self) -> None:
+        self._frames.close()

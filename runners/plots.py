@@ -7,11 +7,11 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from flextrack.geometry import se3  # noqa: E402
-from runners.results import TrackRecord  # noqa: E402
+from flextrack.geometry import se3
+from runners.results import TrackRecord
 
 
 def plot_error(record: TrackRecord, path: str | Path, title: str = "") -> Path:

@@ -16,8 +16,8 @@ time of a 30 s sequence is the tracker's own compute time plus one loopback roun
 from __future__ import annotations
 
 import heapq
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
@@ -56,10 +56,12 @@ def intrinsics_of(camera) -> pb.Intrinsics:
 
 
 def replay(seq: Sequence, backend, vertices_O: np.ndarray, tracker_options: TrackerOptions | None = None,
-           options: ReplayOptions = ReplayOptions(), wrap: Callable[[Tracker], Tracker] | None = None) -> TrackRecord:
+           options: ReplayOptions = ReplayOptions(), wrap: Callable[[Tracker], Tracker] | None = None,
+           frame_jpeg: Callable[[int], bytes] | None = None) -> TrackRecord:
     """Track `seq` with `backend` (see runners.backends) and record every frame against ground truth.
 
-    `wrap` may put a proxy around the tracker (the timing experiment measures its calls that way).
+    `wrap` may put a proxy around the tracker (the timing experiment measures its calls that way);
+    `frame_jpeg(frame_id)` gives the image a request carries (default: the 90 kB stand-in).
     """
     tracker = Tracker(tracker_options or TrackerOptions(), seq.camera, seq.T_BC, bbox_corners(vertices_O))
     if wrap is not None:
@@ -68,7 +70,7 @@ def replay(seq: Sequence, backend, vertices_O: np.ndarray, tracker_options: Trac
     record = TrackRecord(seq.camera, vertices_O)
     image = stand_in_jpeg(seq.camera.width, seq.camera.height)
     intrinsics = intrinsics_of(seq.camera)
-    compute_ns = int(round(options.backend_compute_ms * 1e6))
+    compute_ns = round(options.backend_compute_ms * 1e6)
 
     events: list[tuple] = []  # (t_ns, kind, n, payload)
     imu = seq.imu
@@ -89,7 +91,8 @@ def replay(seq: Sequence, backend, vertices_O: np.ndarray, tracker_options: Trac
             if result.request is not None:
                 request = make_request(
                     frame_id=payload, capture_time_ns=result.request.frame_t_ns, session_id=options.session_id,
-                    estimator=options.estimator, object_id=seq.object_id, sequence=seq.name, image=image,
+                    estimator=options.estimator, object_id=seq.object_id, sequence=seq.name,
+                    image=image if frame_jpeg is None else frame_jpeg(payload),
                     width=seq.camera.width, height=seq.camera.height, intrinsics=intrinsics,
                     client_state=tracker.state_bytes())
                 record.requests += 1

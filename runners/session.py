@@ -6,11 +6,11 @@ the experiments.
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 from contextlib import ExitStack
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -24,6 +24,7 @@ from estimators.registry import EstimatorRegistry
 from runners import plots
 from runners.backends import GrpcBackend, InProcessBackend, oracle_registry
 from runners.live import LiveOptions, Progress, run_live
+from runners.payload import RenderedJpegs
 from runners.replay import ReplayOptions, replay
 from runners.results import TrackRecord
 
@@ -40,6 +41,7 @@ class RunSpec:
     in_process: bool = False
     config: Path | None = None  # estimator config instead of the oracles
     server: str | None = None  # external server address
+    frames: bool = False  # send rendered frames (image estimators) instead of the stand-in JPEG
 
 
 def at_fps(seq: Sequence, fps: float) -> Sequence:
@@ -84,6 +86,10 @@ def track(seq: Sequence, tracker_options: TrackerOptions, spec: RunSpec,
         if spec.backend not in registry.names():
             raise ValueError(f"unknown estimator '{spec.backend}'; available: {registry.names()}")
     with ExitStack() as stack:
+        frame_jpeg = None
+        if spec.frames:
+            frame_jpeg = RenderedJpegs(seq)
+            stack.callback(frame_jpeg.close)
         address = spec.server
         if spec.in_process and not spec.live:
             backend = InProcessBackend(registry, spec.network)
@@ -94,12 +100,12 @@ def track(seq: Sequence, tracker_options: TrackerOptions, spec: RunSpec,
             if spec.live:
                 options = LiveOptions(network=spec.network, slowdown=spec.slowdown, estimator=spec.backend,
                                       speed=spec.speed)
-                return run_live(seq, address, vertices, tracker_options, options, progress)
+                return run_live(seq, address, vertices, tracker_options, options, progress, frame_jpeg=frame_jpeg)
             backend = GrpcBackend(address, spec.network)
             stack.callback(backend.close)
         options = ReplayOptions(network=spec.network, slowdown=spec.slowdown,
                                 backend_compute_ms=spec.backend_compute_ms, estimator=spec.backend)
-        return replay(seq, backend, vertices, tracker_options, options)
+        return replay(seq, backend, vertices, tracker_options, options, frame_jpeg=frame_jpeg)
 
 
 def print_progress(p: Progress, stream=sys.stderr) -> None:

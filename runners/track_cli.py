@@ -17,6 +17,7 @@ from client_sdk.network_model import NetworkOptions
 from client_sdk.slowdown import PIXEL2_FACTOR
 from datasets import sequence as sequence_io
 from runners import session
+from runners.backends import ORACLE_BACKENDS as ORACLES
 from runners.results import format_table
 
 
@@ -42,6 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--slowdown", type=float, default=PIXEL2_FACTOR, help="device slowdown (1 = none)")
     parser.add_argument("--backend-ms", type=float, default=0.0, help="modelled backend compute time (replay)")
     parser.add_argument("--seed", type=int, default=0, help="network and Noisy-backend seed")
+    parser.add_argument("--frames", action="store_true", help="send the rendered frames (rendered on demand into the "
+                        "folder's rgb/); on by default for estimators other than the gt/noisy oracles")
     parser.add_argument("--no-plots", action="store_true")
 
 
@@ -64,7 +67,8 @@ def run(args) -> int:
         spec = session.RunSpec(
             backend=args.backend, network=network_options(args.network, args.seed), slowdown=args.slowdown,
             backend_compute_ms=args.backend_ms, seed=args.seed, live=args.live, speed=args.speed,
-            in_process=args.in_process, config=args.config, server=args.server)
+            in_process=args.in_process, config=args.config, server=args.server,
+            frames=args.frames or args.backend not in ORACLES)
         progress = session.print_progress if args.live and sys.stderr.isatty() else None
         record = session.track(seq, tracker_options(args), spec, progress=progress)
     except (FileNotFoundError, ValueError, ConnectionError, RuntimeError) as exc:

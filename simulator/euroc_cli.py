@@ -14,6 +14,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fps", type=float, default=None, help="frame rate (default: cam0's, 20 Hz)")
     parser.add_argument("--object", default="default", help="'default' or the path of a BOP .ply model (mm)")
     parser.add_argument("--object-id", default=None)
+    parser.add_argument("--max-distance", type=float, default=3.0,
+                        help="farthest camera-object distance that counts as seen, m (PIA wants the object's "
+                             "box >= 1/100 of the frame: ~1.1 m for a 150 mm object in cam0)")
     parser.add_argument("--no-plots", action="store_true", help="skip the trajectory / IMU pictures")
 
 
@@ -24,7 +27,8 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         root = convert_euroc(args.euroc, args.out, fps=args.fps,
-                             object_path=None if args.object == "default" else args.object, object_id=args.object_id)
+                             object_path=None if args.object == "default" else args.object, object_id=args.object_id,
+                             max_distance_m=args.max_distance)
     except (ValueError, FileNotFoundError) as exc:
         print(f"flextrack convert-euroc: {exc}", file=sys.stderr)
         return 2

@@ -4,7 +4,7 @@ The IMU and the ground truth are copied unchanged; the camera is EuRoC's cam0 (7
 distortion, T_BS of cam0 is our T_BC). There are no images of an object, so a virtual object is
 placed in the Vicon world where cam0 sees it for as much of the run as possible: candidate points
 are put on the optical axes of the frames at several depths, and the one that projects inside the
-image (with a margin for the object's size) at a comfortable distance in the most frames wins.
+image (with a margin for the object's size) at 0.6 m..max_distance_m in the most frames wins.
 The object stands upright (world z is up in EuRoC's Vicon frame) and faces the cameras. Frames
 are at cam0's 20 Hz or any rate asked; their camera poses are the Vicon body poses interpolated at
 the frame times and moved to cam0 by T_BC.
@@ -26,7 +26,6 @@ from simulator.render import load_model
 from simulator.sequence_writer import bop_obj_id_of, install_model, write_sequence
 
 MIN_DISTANCE_M, MAX_DISTANCE_M = 0.6, 3.0
-CANDIDATE_DEPTHS_M = (0.8, 1.2, 1.6, 2.0, 2.5)
 IMU_LEAD_S = 1.0  # the IMU starts at least this long before the first frame
 
 
@@ -37,9 +36,10 @@ class Placement:
     distance_m: tuple[float, float, float]  # min, median, max over the frames that see it
 
 
-def visibility(points_W: np.ndarray, T_WC: np.ndarray, camera: PinholeCamera, radius_m: float) -> np.ndarray:
-    """(P, F) bool: point p is in front of frame f's camera at a good distance, with a disc of
-    `radius_m` around it inside the image."""
+def visibility(points_W: np.ndarray, T_WC: np.ndarray, camera: PinholeCamera, radius_m: float,
+               max_distance_m: float = MAX_DISTANCE_M) -> np.ndarray:
+    """(P, F) bool: point p is in front of frame f's camera at MIN_DISTANCE_M..max_distance_m, with
+    a disc of `radius_m` around it inside the image."""
     T_CW = np.linalg.inv(T_WC)
     pc = np.einsum("fij,pj->pfi", T_CW[:, :3, :3], points_W) + T_CW[None, :, :3, 3]
     z = pc[..., 2]
@@ -48,17 +48,19 @@ def visibility(points_W: np.ndarray, T_WC: np.ndarray, camera: PinholeCamera, ra
     v = camera.fy * pc[..., 1] / safe_z + camera.cy
     margin = camera.fx * radius_m / safe_z
     dist = np.linalg.norm(pc, axis=-1)
-    return ((z > 0) & (dist >= MIN_DISTANCE_M) & (dist <= MAX_DISTANCE_M)
+    return ((z > 0) & (dist >= MIN_DISTANCE_M) & (dist <= max_distance_m)
             & (u - margin >= 0) & (u + margin <= camera.width - 1)
             & (v - margin >= 0) & (v + margin <= camera.height - 1))
 
 
-def place_object(T_WC: np.ndarray, camera: PinholeCamera, radius_m: float) -> Placement:
-    """The candidate point seen whole in the most frames (ties: the nearer median distance to 1.2 m)."""
+def place_object(T_WC: np.ndarray, camera: PinholeCamera, radius_m: float,
+                 max_distance_m: float = MAX_DISTANCE_M) -> Placement:
+    """The candidate point (on the optical axes of ~150 frames, at 5 depths) seen whole in the most frames."""
     every = max(1, len(T_WC) // 150)
     origins, axes = T_WC[::every, :3, 3], T_WC[::every, :3, 2]
-    candidates = (origins[:, None] + np.asarray(CANDIDATE_DEPTHS_M)[None, :, None] * axes[:, None]).reshape(-1, 3)
-    seen = visibility(candidates, T_WC, camera, radius_m)
+    depths = np.linspace(MIN_DISTANCE_M, max_distance_m, 7)[1:-1]
+    candidates = (origins[:, None] + depths[None, :, None] * axes[:, None]).reshape(-1, 3)
+    seen = visibility(candidates, T_WC, camera, radius_m, max_distance_m)
     score = seen.mean(axis=1)
     best = int(np.argmax(score))
     dist = np.linalg.norm(T_WC[seen[best], :3, 3] - candidates[best], axis=1)
@@ -67,7 +69,8 @@ def place_object(T_WC: np.ndarray, camera: PinholeCamera, radius_m: float) -> Pl
 
 
 def convert_euroc(euroc_dir: str | Path, out_dir: str | Path, *, fps: float | None = None,
-                  object_path: str | Path | None = None, object_id: str | None = None) -> Path:
+                  object_path: str | Path | None = None, object_id: str | None = None,
+                  max_distance_m: float = MAX_DISTANCE_M) -> Path:
     """Write the sequence folder `out_dir` from a EuRoC folder holding imu0.csv, groundtruth.csv,
     cam0_sensor.yaml and imu0_sensor.yaml (or the mav0/ layout: imu0/data.csv, ...)."""
     src = Path(euroc_dir)
@@ -80,6 +83,8 @@ def convert_euroc(euroc_dir: str | Path, out_dir: str | Path, *, fps: float | No
     fps = float(fps or cam.rate_hz)
     if fps <= 0:
         raise ValueError("fps must be positive")
+    if not max_distance_m > MIN_DISTANCE_M:
+        raise ValueError(f"the object's maximum distance must exceed {MIN_DISTANCE_M} m")
 
     gt_poses = np.stack([se3.from_quat_translation(q, p) for q, p in zip(gt.q_WB, gt.p_WB)])
     first = max(int(gt.t_ns[0]), int(imu.t_ns[0]) + int(IMU_LEAD_S * 1e9))
@@ -98,7 +103,7 @@ def convert_euroc(euroc_dir: str | Path, out_dir: str | Path, *, fps: float | No
     model = install_model(source, root, bop_obj_id)
     vertices = np.asarray(load_model(model).vertices)
     centre_O = (vertices.min(axis=0) + vertices.max(axis=0)) / 2
-    placement = place_object(T_WC, camera, radius_m=float(np.linalg.norm(vertices - centre_O, axis=1).max()))
+    placement = place_object(T_WC, camera, float(np.linalg.norm(vertices - centre_O, axis=1).max()), max_distance_m)
     facing = np.median(T_WC[:, :3, 3], axis=0) - placement.centre_W  # turn the object's +x to the cameras
     R_WO = so3.exp(np.array([0.0, 0.0, np.arctan2(facing[1], facing[0])]))
     T_WO = se3.make(R_WO, placement.centre_W - R_WO @ centre_O)
@@ -110,7 +115,7 @@ def convert_euroc(euroc_dir: str | Path, out_dir: str | Path, *, fps: float | No
         object_id=object_id, bop_obj_id=bop_obj_id, model_path=model, groundtruth=gt,
         meta={
             "converter": {"source": str(src.resolve()), "fps": fps, "object": str(object_path or "default"),
-                          "imu_lead_s": IMU_LEAD_S},
+                          "imu_lead_s": IMU_LEAD_S, "max_distance_m": max_distance_m},
             "placement": {"centre_W": placement.centre_W.tolist(), "visible_fraction": placement.visible_fraction,
                           "distance_m_min_median_max": list(placement.distance_m)},
             "times_ns": {"imu_start": int(imu.t_ns[0]), "end": int(last)},

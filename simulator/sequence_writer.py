@@ -60,7 +60,12 @@ def write_camera_sensor(path: Path, seq: Sequence, rate_hz: float) -> None:
 
 
 def write_sequence(seq: Sequence, imu_extra: dict | None = None) -> Path:
-    """Save `seq` (its model must already be under seq.root) and the simulator's extra files."""
+    """Save `seq` (its model must already be under seq.root) and the simulator's extra files.
+
+    Frames rendered for an earlier sequence written to the same folder are removed: they would
+    otherwise be read back as this one's."""
+    for stale in ("rgb", "mask", "depth"):
+        shutil.rmtree(seq.root / stale, ignore_errors=True)
     save(seq)
     times = seq.frame_times_ns
     rate = float(1e9 * (len(times) - 1) / (times[-1] - times[0])) if len(times) > 1 else 0.0

@@ -81,8 +81,8 @@ class Shake:
 
 PROGRAMS = {
     ("translational", "easy"): Translational(0.0, 1.0, 0.24, 0.22, 0.24, 0.27, 0.09, 0.41, 0.0, 1.0),
-    ("translational", "medium"): Translational(0.047, 2.1, 0.040, 2.6, 0.06, 0.3, 0.0, 1.0, 0.0055, 2.2),
-    ("translational", "hard"): Translational(0.0555, 2.6, 0.085, 2.0, 0.06, 0.3, 0.0, 1.0, 0.0064, 5.7),
+    ("translational", "medium"): Translational(0.047, 2.1, 0.040, 2.6, 0.06, 0.3, 0.0, 1.0, 0.006, 2.2),
+    ("translational", "hard"): Translational(0.0555, 2.6, 0.085, 2.0, 0.06, 0.3, 0.0, 1.0, 0.0068, 5.7),
     ("circular", "easy"): Circular(0.048, 0.26, 0.21, 0.0),
     ("circular", "medium"): Circular(0.120, 0.19, 0.475, 0.38),
     ("circular", "hard"): Circular(0.185, 0.2066, 0.66, 0.46),

@@ -2,8 +2,8 @@
 
 import numpy as np
 import pytest
-from client_motion import BOX_O, CAMERA, G_O, Motion, drive
 
+from benchmarks.tracker_world import BOX_O, CAMERA, G_O, Motion, drive
 from client_sdk import ResponseOutcome, TrackerOptions
 from client_sdk.propagation import rotate, step_midpoint, step_paper
 from flextrack.geometry import so3

@@ -5,8 +5,8 @@ import sys
 
 import numpy as np
 import pytest
-from client_motion import BOX_O, CAMERA, T_BC, Motion, drive
 
+from benchmarks.tracker_world import BOX_O, CAMERA, T_BC, Motion, drive
 from client_sdk import ResponseOutcome, Status, Tracker, TrackerOptions
 from client_sdk import state as state_codec
 from client_sdk.propagation import propagate, step_paper
@@ -192,9 +192,10 @@ def test_wrong_pose_abandons_the_regular_request_and_sends_the_frame_at_once():
     assert tr.on_backend_response(regular.request_id, regular.frame_t_ns, m.T_CO(regular.frame_t_ns * 1e-9)) \
         is ResponseOutcome.STALE
     tr.add_imu(t + 10 * MS, *m.imu((t + 10 * MS) * 1e-9))
+    before = tr.last_bscm
     assert tr.on_backend_response(r.request.request_id, r.request.frame_t_ns, m.T_CO((t + 6 * MS) * 1e-9)) \
         is ResponseOutcome.APPLIED
-    assert tr.last_bscm is None or tr.last_bscm  # the PRM reset: no BSCM across the failure
+    assert tr.last_bscm is before  # the PRM was reset: no BSCM across the failure
     r2 = tr.add_frame(t + 12 * MS)
     assert proj_px(r2.T_CO, m.T_CO((t + 12 * MS) * 1e-9), CAMERA, BOX_O) < 0.5
 

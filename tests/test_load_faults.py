@@ -2,7 +2,8 @@
 degraded while the server is away, and is back below 1 px (GT backend) within 1 s of the return.
 
 A real `flextrack serve` process is killed with SIGKILL (a crash, not a graceful stop) during a
-live replay and started again on the same port 2 s later.
+live replay and started again on the same port 2 s later; it is back when its health says SERVING
+(a process start takes 2-5 s here, so the device is without a server for 4-7 s).
 """
 
 from __future__ import annotations
@@ -15,23 +16,27 @@ import pytest
 
 from client_sdk import TrackerOptions
 from client_sdk.network_model import NetworkOptions
+from client_sdk.transport import TransportOptions
 from datasets import sequence as sequence_io
 from loadtest import servers
 from runners import session
 from runners.live import LiveOptions, Progress, run_live
 from simulator.generate import generate_sequence
 
-KILL_AT_S = 4.0  # sequence time (the IMU starts 2 s before the first frame)
+KILL_AT_S = 3.5  # sequence time (the IMU starts 2 s before the first frame)
 DOWN_S = 2.0
+# Reconnect at least every ~0.5 s: with the SDK's default (backoff up to 2 s, 1 s connect timeout) the
+# client may only try again up to ~3 s after the server is back, which alone breaks the 1 s bound.
+TRANSPORT = TransportOptions(backoff_max_s=0.4, connect_timeout_s=0.3)
 
 
 @pytest.fixture(scope="module")
 def seq(tmp_path_factory):
     root = tmp_path_factory.mktemp("faults") / "circular_easy"
-    return sequence_io.load(generate_sequence("circular", "easy", root, duration_s=7.0, fps=30.0, seed=4,
-                                              imu_profile="ideal"))
+    return sequence_io.load(generate_sequence("circular", "easy", root, duration_s=10.0, fps=30.0, seed=4))
 
 
+@pytest.mark.slow  # real time: a 12 s sequence, a server start and a restart
 def test_client_survives_a_server_crash_and_recovers(seq, tmp_path):
     config = tmp_path / "gt.toml"
     config.write_text(f'[[estimators]]\nname = "gt"\nkind = "gt_oracle"\n[estimators.params]\n'
@@ -62,7 +67,8 @@ def test_client_survives_a_server_crash_and_recovers(seq, tmp_path):
     chaos.start()
     try:
         record = run_live(seq, f"127.0.0.1:{port}", session.model_vertices(seq), TrackerOptions(),
-                          LiveOptions(network=NetworkOptions(seed=1), estimator="gt"), progress=on_progress,
+                          LiveOptions(network=NetworkOptions(seed=1), estimator="gt", transport=TRANSPORT),
+                          progress=on_progress,
                           progress_every_s=0.05)
         chaos.join(30)
     finally:
@@ -79,8 +85,8 @@ def test_client_survives_a_server_crash_and_recovers(seq, tmp_path):
     assert len(record.rows) == len(seq.frame_ids)  # the client never stopped
     assert record.failures > 0  # requests in flight at the crash (or sent while away) failed
 
-    # While away: the client says so (not connected) and tracks on, on its IMU.
-    away = [p for wall, p in reports if killed + 0.3 < seq_time(wall) < back]
+    # While away (no process on the port): the client says so (not connected) and tracks on, on its IMU.
+    away = [p for wall, p in reports if killed + 0.3 < seq_time(wall) < killed + DOWN_S]
     assert away and not any(p.connected for p in away)
     away_rows = [r for r, t in zip(record.rows, rows) if killed + 0.3 < t < back]
     assert away_rows and all(r.T_CO is not None for r in away_rows)
@@ -89,6 +95,9 @@ def test_client_survives_a_server_crash_and_recovers(seq, tmp_path):
     record.scored()
     after = [(t, r.proj_px) for r, t in zip(record.rows, rows) if t > back and np.isfinite(r.proj_px)]
     recovered = next((t for i, (t, _) in enumerate(after) if all(px < 1.0 for _, px in after[i:i + 15])), None)
+    print("after", [(round(t, 2), round(px, 1)) for t, px in after[:60]])
+    worst_away = max((r.proj_px for r in away_rows if np.isfinite(r.proj_px)), default=float("nan"))
     print(f"killed at {killed:.2f} s, back at {back:.2f} s, statuses while away "
-          f"{sorted({r.status for r in away_rows})}, below 1 px from {recovered} s")
+          f"{sorted({r.status for r in away_rows})}, worst error while away {worst_away:.1f} px, "
+          f"below 1 px again from {recovered} s")
     assert recovered is not None and recovered - back <= 1.0

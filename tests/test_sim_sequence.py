@@ -133,3 +133,11 @@ def test_bad_arguments_are_clear_errors(tmp_path):
         generate_sequence("circular", "easy", tmp_path / "x", still_s=0.5)
     with pytest.raises(ValueError):
         generate_sequence("circular", "impossible", tmp_path / "x")
+
+
+def test_regenerating_a_folder_drops_stale_frames(tmp_path):
+    root = tmp_path / "again"
+    (root / "rgb").mkdir(parents=True)
+    (root / "rgb" / "000000.png").write_bytes(b"old frame")
+    generate_sequence("translational", "easy", root, duration_s=1.0, fps=10.0)
+    assert not (root / "rgb").exists()

@@ -1,4 +1,4 @@
-"""A small analytic world for the tracker-core tests (independent of the simulator package).
+"""A small analytic world for the tracker core's tests and benchmark (independent of the simulator).
 
 The IMU body circles a box-shaped object (20 x 16 x 12 cm) at 1.2 m as in the paper's scene, at
 about the paper's "circular hard" speed (0.25 m/s), looking at it, with a varying orbit rate, a
