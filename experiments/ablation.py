@@ -61,9 +61,11 @@ def _series(record) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _one_second(series: dict, start_s: float = 10.0) -> dict:
+    """The second from `start_s` (or the run's last second, when it is shorter) of each series."""
     out = {}
     for name, (t, px) in series.items():
-        keep = (t >= start_s) & (t < start_s + 1.0)
+        start = min(start_s, max(0.0, float(t.max(initial=0.0)) - 1.0))
+        keep = (t >= start) & (t < start + 1.0)
         out[name] = (t[keep], px[keep])
     return out
 

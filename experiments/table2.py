@@ -26,7 +26,7 @@ def run(out: Path, seeds: list[int], duration_s: float = 30.0, in_process: bool 
     cache = out / "sequences"
     traj_dir = out / "trajectories"
     traj_dir.mkdir(parents=True, exist_ok=True)
-    rows = []
+    rows, fine = [], {}
     cells = [(m, lv, f) for m in motions for lv in levels for f in fps_list]
     with common.progress(len(seeds) * len(cells) * len(paper.BACKENDS), "table2") as bar:
         for seed in seeds:
@@ -39,13 +39,15 @@ def run(out: Path, seeds: list[int], duration_s: float = 30.0, in_process: bool 
                         s = record.summarize()
                         rows.append([motion, level, fps, backend, seed, s.pos_mm, s.ori_deg, s.proj_px,
                                      *paper.TABLE2[(motion, level, fps, backend)]])
+                        fine.setdefault((motion, level, fps, backend), []).append(
+                            100.0 * s.status_counts.get("FINE", 0) / max(1, s.frames))
                         if seed == seeds[0]:
                             record.write(traj_dir, f"{motion}_{level}_{fps}fps_{backend}")
                         bar.set_postfix_str(f"{motion}/{level}/{fps}/{backend}: {s.proj_px:.2f} px")
                         bar.update()
     common.write_csv(out / "table2.csv", HEADER, rows)
     plots.table2(rows, out / "table2.png")
-    (out / "table2.md").write_text(report(rows, seeds, duration_s, in_process))
+    (out / "table2.md").write_text(report(rows, seeds, duration_s, in_process, fine))
     return rows
 
 
@@ -57,7 +59,8 @@ def _cells(rows: list[list]) -> dict[tuple, np.ndarray]:
     return {k: np.array(v) for k, v in cells.items()}
 
 
-def report(rows: list[list], seeds: list[int], duration_s: float, in_process: bool) -> str:
+def report(rows: list[list], seeds: list[int], duration_s: float, in_process: bool,
+           fine: dict[tuple, list[float]]) -> str:
     cells = _cells(rows)
     lines = [
         "# Table 2 rerun: pose errors per motion program, frame rate and backend", "",
@@ -89,6 +92,12 @@ def report(rows: list[list], seeds: list[int], duration_s: float, in_process: bo
     lines += ["", (f"Worst mean 2D error: GT {worst['gt']:.2f} px (limit {GT_LIMIT_PX}, paper 0.69), "
               f"Noisy {worst['noisy']:.2f} px (limit {NOISY_LIMIT_PX}, paper 2.33): "
               f"{'PASS' if worst['gt'] <= GT_LIMIT_PX and worst['noisy'] <= NOISY_LIMIT_PX else 'FAIL'}."),
+              "", ("Frames the tracker called FINE, % (the rest: TRACKING_LOST / WRONG_POSE / INITIALIZING), mean "
+                   "over seeds:"), "",
+              common.markdown_table(header, [[b.upper() if b == "gt" else "Noisy", f"{f:g}"]
+                                             + [f"{np.mean(fine[(m, lv, f, b)]):.0f}" if (m, lv, f, b) in fine else ""
+                                                for m, lv in programs]
+                                             for b in paper.BACKENDS for f in fps_list]),
               "", "![2D error per cell](table2.png)", "",
               ("Files: `table2.csv` (one row per cell and seed), `trajectories/*.tum` (estimate and ground truth, "
               "TUM format, readable by evo), `trajectories/*_frames.csv` (per-frame errors).")]

@@ -138,7 +138,7 @@ async def _client(idx: int, spec: LoadSpec, workload: Workload, channel: grpc.ai
                         call = track(metadata=spec.metadata)
                     await call.write(request)
                     response = await asyncio.wait_for(call.read(), spec.deadline_s)
-                    if response is grpc.aio.EOF:  # the server ended the stream: count it, open a new one
+                    if response is grpc.aio.EOF:  # refused, or ended by the server: count it, open a new one
                         outcome, call = f"grpc:{(await call.code()).name}", None
                     else:
                         outcome = _outcome(response)

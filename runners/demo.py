@@ -95,6 +95,9 @@ def run(args) -> int:
     except (ConnectionError, RuntimeError) as exc:
         print(f"\nflextrack demo: {exc}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:
+        print("\nflextrack demo: interrupted", file=sys.stderr)
+        return 130
     print()
     print(format_table([(name, record.summarize()) for name, record in runs]))
     written = []

@@ -115,14 +115,14 @@ def run_live(seq: Sequence, address: str, vertices_O: np.ndarray, tracker_option
             frame_id = int(seq.frame_ids[i])
             with slowdown.stretch():
                 result = tracker.add_frame(t_ns)
-                status = result.status.name
-                if result.request is not None:
-                    request = make_request(
-                        frame_id=frame_id, capture_time_ns=result.request.frame_t_ns, session_id=options.session_id,
-                        estimator=options.estimator, object_id=seq.object_id, sequence=seq.name,
-                        image=image if frame_jpeg is None else frame_jpeg(frame_id),
-                        width=seq.camera.width, height=seq.camera.height, intrinsics=intrinsics,
-                        client_state=tracker.state_bytes())
+                state = tracker.state_bytes() if result.request is not None else b""
+            status = result.status.name
+            if result.request is not None:
+                request = make_request(
+                    frame_id=frame_id, capture_time_ns=result.request.frame_t_ns, session_id=options.session_id,
+                    estimator=options.estimator, object_id=seq.object_id, sequence=seq.name,
+                    image=image if frame_jpeg is None else frame_jpeg(frame_id),  # the camera's work: not stretched
+                    width=seq.camera.width, height=seq.camera.height, intrinsics=intrinsics, client_state=state)
             record.add(frame_id, t_ns, status, result.T_CO, seq.gt_T_CO.get(frame_id))
             if result.request is not None:
                 record.requests += 1

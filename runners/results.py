@@ -133,9 +133,10 @@ class TrackRecord:
 
 def format_table(rows: list[tuple[str, Summary]]) -> str:
     """A small Markdown table of summaries, one line per named run."""
-    lines = ["| run | frames | pos mm | ori deg | proj px | proj p95 px | requests | failures |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| run | frames | FINE % | pos mm | ori deg | proj px | proj p95 px | requests | failures |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for name, s in rows:
-        lines.append(f"| {name} | {s.frames} | {s.pos_mm:.2f} | {s.ori_deg:.3f} | {s.proj_px:.3f} | "
+        fine = 100.0 * s.status_counts.get("FINE", 0) / max(1, s.frames)
+        lines.append(f"| {name} | {s.frames} | {fine:.0f} | {s.pos_mm:.2f} | {s.ori_deg:.3f} | {s.proj_px:.3f} | "
                      f"{s.proj_px_p95:.3f} | {s.requests} | {s.failures} |")
     return "\n".join(lines)

@@ -33,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--live", action="store_true", help="run in real time through the sleeping interceptor")
     parser.add_argument("--speed", type=float, default=1.0, help="with --live: play the sequence this much faster")
     parser.add_argument("--in-process", action="store_true", help="replay without gRPC (same results)")
-    parser.add_argument("--fps", type=float, help="use the sequence's frames at this rate (default: all of them)")
+    parser.add_argument("--fps", type=float, help="use the sequence's frames nearest to this rate (None: all of them)")
     parser.add_argument("--no-bscm", action="store_true", help="ablation: no bias self-correction")
     parser.add_argument("--no-pia", action="store_true", help="ablation: no pose inspection")
     parser.add_argument("--imu-only", action="store_true", help="ablation: no backend after initialisation")
@@ -74,6 +74,12 @@ def run(args) -> int:
     except (FileNotFoundError, ValueError, ConnectionError, RuntimeError) as exc:
         print(f"flextrack track: {exc}", file=sys.stderr)
         return 2
+    except KeyError as exc:
+        print(f"flextrack track: {args.sequence}: rig.yaml lacks the field {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("\nflextrack track: interrupted", file=sys.stderr)
+        return 130
     name = f"{seq.name}_{args.backend}"
     if record.requests and not record.responses:
         print(f"flextrack track: the backend answered none of {record.requests} requests with a pose "

@@ -121,8 +121,8 @@ class AdmissionInterceptor(grpc.aio.ServerInterceptor):
     def _wrap_track(self, behaviour, parse):
         async def track(raw_iterator, context):
             if self.max_streams and self.streams >= self.max_streams:
-                # Take the first frame (unparsed) before refusing: a client still writing it when the stream
-                # ends would see its write fail with INTERNAL instead of this status.
+                # Take the first frame (unparsed) before refusing: an asyncio client still writing it when the
+                # stream ends sees its write fail and the call end INTERNAL instead of with this status.
                 await anext(aiter(raw_iterator), None)
                 self._observe("Track", "-", REJECTED_CODE, None)
                 await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED,

@@ -2,6 +2,8 @@
 
 import csv
 
+import pytest
+
 from flextrack.cli import main
 
 
@@ -43,3 +45,25 @@ def test_timing_writes_the_agreed_csv(tmp_path):
 def test_bad_arguments_are_refused(tmp_path, capsys):
     assert main(["experiment", "euroc", "--out", str(tmp_path), "--data", str(tmp_path / "nope")]) == 2
     assert "not found" in capsys.readouterr().err
+
+
+def test_ablation_writes_the_agreed_csv_and_the_sawtooth(tmp_path):
+    out = tmp_path / "abl"
+    assert main(["experiment", "ablation", "--out", str(out), "--duration", "3", "--in-process"]) == 0
+    rows = _csv(out / "ablation.csv")
+    assert list(rows[0]) == ["variant", "backend", "motion", "level", "fps", "proj_px"]
+    assert {r["variant"] for r in rows} == {"full", "bscm_pia_off", "imu_only"} and len(rows) == 3 * 2 * 6
+    for name in ("ablation.png", "sawtooth.png", "ablation_over_time.png"):
+        assert (out / name).stat().st_size > 0
+
+
+def test_euroc_writes_the_agreed_csv(tmp_path):
+    from experiments.euroc import DEFAULT_DATA
+
+    if not DEFAULT_DATA.is_dir():
+        pytest.skip(f"EuRoC data not found at {DEFAULT_DATA} (see shared/data/SOURCES.md)")
+    out = tmp_path / "euroc"
+    assert main(["experiment", "euroc", "--out", str(out), "--in-process"]) == 0
+    rows = _csv(out / "euroc.csv")
+    assert list(rows[0]) == ["variant", "pos_mm", "ori_deg", "proj_px"]
+    assert [r["variant"] for r in rows] == ["full", "bscm_off"]

@@ -82,3 +82,19 @@ def test_at_fps_picks_a_lower_frame_rate(phone_seq):
     assert set(low.frame_ids) <= set(phone_seq.frame_ids)
     with pytest.raises(ValueError, match="fps"):
         session.at_fps(phone_seq, 0.0)
+
+
+def test_batched_projection_error_matches_the_per_frame_metric():
+    from flextrack.geometry import metrics, se3, so3
+    from flextrack.geometry.camera import PinholeCamera
+
+    rng = np.random.default_rng(0)
+    camera, points = PinholeCamera.linemod(), rng.normal(0.0, 0.05, (300, 3))
+
+    def poses(n):
+        return np.stack([se3.make(so3.exp(rng.normal(0, 0.1, 3)), np.array([0, 0, 1.0]) + rng.normal(0, 0.01, 3))
+                         for _ in range(n)])
+
+    est, gt = poses(300), poses(300)
+    expected = [metrics.proj_px(a, b, camera, points) for a, b in zip(est, gt)]
+    assert np.allclose(metrics.proj_px_many(est, gt, camera, points, chunk=64), expected, rtol=1e-12)

@@ -37,7 +37,7 @@ def proj_px_many(T_est: np.ndarray, T_gt: np.ndarray, camera: PinholeCamera, poi
     for s in range(0, len(T_est), chunk):
         uv = []
         for T in (T_est[s:s + chunk], T_gt[s:s + chunk]):
-            X = np.einsum("fij,nj->fni", T[:, :3, :3], points_O) + T[:, None, :3, 3]
+            X = points_O @ T[:, :3, :3].transpose(0, 2, 1) + T[:, None, :3, 3]
             uv.append(camera.project(X.reshape(-1, 3)).reshape(len(X), -1, 2))
         out[s:s + chunk] = np.linalg.norm(uv[0] - uv[1], axis=-1).mean(axis=1)
     return out
