@@ -29,6 +29,7 @@ from loadtest.workload import Workload
 TRACK = "/flextrack.v1.PoseEstimation/Track"
 ESTIMATE = "/flextrack.v1.PoseEstimation/Estimate"
 MAX_MESSAGE_BYTES = 16 * 1024 * 1024
+CONNECT_SETTLE_S = 0.5  # time for a channel to connect to every address of a multi-address target
 BACKOFF_INITIAL_S, BACKOFF_MAX_S = 0.05, 1.0  # after a failed call, as client_sdk.transport's defaults begin
 
 
@@ -186,6 +187,11 @@ async def run_load(spec: LoadSpec, workload: Workload) -> LoadResult:
     result = LoadResult(spec)
     rng = np.random.default_rng(spec.seed)
     try:
+        if len(spec.targets) > 1:
+            # round_robin deals streams out over the addresses whose connection is up when the stream opens; a
+            # channel connects to all at once, but a stream opened in the first milliseconds sees only the first.
+            await asyncio.gather(*(asyncio.wait_for(ch.channel_ready(), spec.deadline_s) for ch in channels))
+            await asyncio.sleep(CONNECT_SETTLE_S)
         clock = _Clock(spec)
         offsets = rng.uniform(0.0, 1.0 / spec.fps, spec.clients)  # devices are not in step
         await asyncio.gather(*(_client(i, spec, workload, channels[i % n_channels], clock, float(offsets[i]), result)
