@@ -51,8 +51,8 @@ def _untrained_model(path: Path, keypoints) -> Path:
 
 def _mean_batch(metrics_address: str) -> float:
     text = urllib.request.urlopen(f"http://{metrics_address}/metrics", timeout=5).read().decode()
-    total = sum(float(v) for v in re.findall(r"^flextrack_batch_size_sum\{[^}]*\} (\S+)$", text, re.M))
-    count = sum(float(v) for v in re.findall(r"^flextrack_batch_size_count\{[^}]*\} (\S+)$", text, re.M))
+    total = sum(float(v) for v in re.findall(r"^flextrack_batch_size_sum\{[^}]*\} (\S+)$", text, re.MULTILINE))
+    count = sum(float(v) for v in re.findall(r"^flextrack_batch_size_count\{[^}]*\} (\S+)$", text, re.MULTILINE))
     return total / count if count else 1.0
 
 

@@ -42,7 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def served(metrics_address: str) -> float:
     """Frames a replica answered, from its /metrics text (any method, estimator and code)."""
     text = urllib.request.urlopen(f"http://{metrics_address}/metrics", timeout=5).read().decode()
-    return sum(float(v) for v in re.findall(r"^flextrack_requests_total\{[^}]*\} (\S+)$", text, flags=re.M))
+    return sum(float(v) for v in re.findall(r"^flextrack_requests_total\{[^}]*\} (\S+)$", text, flags=re.MULTILINE))
 
 
 def _toy(tmp: Path) -> tuple[Path, Path]:

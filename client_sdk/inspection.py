@@ -1,14 +1,15 @@
 """PIM: the paper's Pose Inspection Algorithm (Algorithm 1) on the object's 3D bounding box.
 
-TRACKING_LOST when the projected box covers less than frame area / 100 (THR_area) or any corner is
-not in front of the camera (a projection through the camera plane is meaningless); WRONG_POSE when
-the mean offset of the 8 projected corners from the previous frame is >= THR_2d =
-10 + 10 * 30 / fps px; FINE otherwise.
+TRACKING_LOST when the object's bounding box in the image covers less than frame area / 100
+(THR_area) or any corner of its 3D box is not in front of the camera (a projection through the
+camera plane is meaningless); WRONG_POSE when the mean offset of the 8 projected corners from the
+previous frame is >= THR_2d = 10 + 10 * 30 / fps px; FINE otherwise.
 
-The projected area is the area of the box's silhouette. For a convex body seen from outside every
-silhouette point is covered by exactly one front face and one back face, and each face, a planar
-convex quadrilateral in front of the camera, projects to a convex quadrilateral; so the silhouette
-area is half the sum of the six projected face areas (shoelace), with no hull to build.
+The area is that of the image bounding box: the axis-aligned rectangle around the 8 projected
+corners of the object's 3D box. The paper's Section 3.5 says "first find the bounding box of the
+object in the image based on the pose. We check the projection area"; Algorithm 1's "area
+surrounded by pBox2DsNow" is read the same way. (The silhouette polygon of the projected 3D box is
+smaller, by 10-40 % for a box seen at an angle, and would call a 15 cm object at 1.2 m lost.)
 """
 
 from __future__ import annotations
@@ -28,22 +29,8 @@ class Status(enum.Enum):
 
 
 # Corner i of a box is lo + bit2(i) * ex + bit1(i) * ey + bit0(i) * ez, the order of
-# flextrack.geometry.camera.bbox_corners; each face lists its 4 corners in cyclic order.
-_FACES = np.array([[0, 1, 3, 2], [4, 5, 7, 6], [0, 1, 5, 4], [2, 3, 7, 6], [0, 2, 6, 4], [1, 3, 7, 5]])
+# flextrack.geometry.camera.bbox_corners.
 _BITS = np.array([[(i >> 2) & 1, (i >> 1) & 1, i & 1] for i in range(8)], dtype=float)
-
-
-def _face_forms() -> np.ndarray:
-    """(6, 8, 8) matrices M_f with u @ M_f @ v = twice the signed area of face f (shoelace)."""
-    M = np.zeros((6, 8, 8))
-    for f, face in enumerate(_FACES):
-        for a, b in zip(face, np.roll(face, -1)):
-            M[f, a, b] += 1.0
-            M[f, b, a] -= 1.0
-    return M
-
-
-_FACE_FORMS = _face_forms()
 
 
 def check_box(corners_O: np.ndarray) -> np.ndarray:
@@ -86,9 +73,9 @@ class PoseInspector:
 
     @staticmethod
     def area(uv: np.ndarray) -> float:
-        """Area in px^2 of the projected box's silhouette (see module doc)."""
-        signed = (_FACE_FORMS @ uv[:, 1]) @ uv[:, 0]  # twice each face's signed area
-        return 0.25 * float(np.abs(signed).sum())
+        """Area in px^2 of the image bounding box of the projected corners (see module doc)."""
+        u, v = uv[:, 0].tolist(), uv[:, 1].tolist()  # plain floats: ~2x faster than numpy's min/max here
+        return (max(u) - min(u)) * (max(v) - min(v))
 
     def inspect(self, uv: np.ndarray | None, uv_last: np.ndarray | None, fps: float | None) -> tuple[Status, str]:
         """Algorithm 1: the status and a human reason, from this frame's and the last frame's corners."""

@@ -48,6 +48,10 @@ class TrackerOptions:
     velocity_gain: float = 0.1
     """Fraction of the velocity error at the mid-time removed per correction (1.0 = the paper; a 3 mm
     noisy backend makes V_avg noisy by ~70 mm/s, hence the smaller default)."""
+    innovation_velocity_gain: float = 0.0
+    """0: the velocity comes from BSCM's V_avg (the paper). > 0: an alpha-beta filter instead (not in
+    the paper): v += this gain * (backend position - propagated position) / time since the last
+    pose, with `pose_gain` as alpha; for a steady-state optimum beta = 2 (2 - alpha) - 4 sqrt(1 - alpha)."""
     max_gyro_bias: float = 0.1
     """Clamp on the norm of the gyro bias estimate, rad/s."""
     max_accel_bias: float = 1.0
@@ -64,8 +68,10 @@ class TrackerOptions:
     """Likewise for a rotation drift rate |d_theta| / dt above this, rad/s."""
     bscm_min_interval_s: float = 0.005
     bscm_max_interval_s: float = 1.0
-    """BSCM runs only when consecutive backend poses are this far apart (short: division by ~0; long:
-    the linear drift model no longer holds)."""
+    """BSCM runs only when the backend pose is this far from its reference (short: division by ~0;
+    long: the linear drift model no longer holds). A pose closer than the minimum waits: the pose is
+    applied but the reference is kept, so V_avg spans at least the minimum baseline (its noise is the
+    backend's position noise / baseline; 0.1 s suits a noisy backend at 60-120 FPS)."""
 
     # --- Initialisation (the paper's "System Initialization") ---
     init_window_s: float = 0.5
@@ -104,3 +110,18 @@ class TrackerOptions:
             raise ValueError("bscm_max_interval_s must exceed bscm_min_interval_s")
         if self.imu_buffer_s <= self.init_window_s:
             raise ValueError("imu_buffer_s must exceed init_window_s")
+
+
+def preset(name: str) -> TrackerOptions:
+    """Named option sets. "paper": the paper's PRM (each backend pose resets the state; BSCM with the
+    damped default gains). "ours": the backend pose blended in half way and the velocity from an
+    alpha-beta filter on the position innovation (alpha = pose_gain = 0.5, beta from Kalata's
+    steady-state relation 2 (2 - alpha) - 4 sqrt(1 - alpha) = 0.17), the gyro bias corrected more
+    slowly: it averages a noisy backend's error instead of resetting to it (docs/tracker.md)."""
+    if name == "paper":
+        return TrackerOptions()
+    if name == "ours":
+        alpha = 0.5
+        return TrackerOptions(pose_gain=alpha, innovation_velocity_gain=round(2 * (2 - alpha) - 4 * math.sqrt(1 - alpha), 2),
+                              gyro_bias_gain=0.02)
+    raise ValueError(f"unknown tracker preset {name!r}: 'paper' or 'ours'")

@@ -107,17 +107,21 @@ class BscmResult:
 
 def bscm(c: tuple, x_imu: tuple, R_real: tuple, p_real: tuple, p_ref: tuple, x_mid: tuple, dt: float,
          gyro_gain: float, accel_gain: float, velocity_gain: float, max_gyro_bias: float,
-         max_accel_bias: float, max_velocity_error: float, max_rotation_rate: float) -> BscmResult:
+         max_accel_bias: float, max_velocity_error: float, max_rotation_rate: float,
+         dt_rot: float | None = None) -> BscmResult:
     """One BSCM correction (see module doc). `x_imu`: propagated state at the capture time t1;
     `R_real`, `p_real`: the backend's R_OB, p_OB at t1; `p_ref`: the backend p_OB at t0;
-    `x_mid`: propagated state at (t0 + t1) / 2; `dt` = t1 - t0 in s. Outliers beyond
-    `max_velocity_error` (m/s) or `max_rotation_rate` (rad/s) change nothing (accepted=False)."""
+    `x_mid`: propagated state at (t0 + t1) / 2; `dt` = t1 - t0 in s; `dt_rot`: the time since the
+    orientation was last set from a backend pose (the span of the rotation drift; default dt).
+    Outliers beyond `max_velocity_error` (m/s) or `max_rotation_rate` (rad/s) change nothing
+    (accepted=False)."""
+    dt_rot = dt if dt_rot is None or dt_rot <= 0 else dt_rot
     d = log_rotation(_mat_t_mat(R_real, x_imu[0:9]))
     v_bias = tuple(x_mid[12 + k] - (p_real[k] - p_ref[k]) / dt for k in range(3))
     if sqrt(sum(e * e for e in v_bias)) > max_velocity_error or \
-            sqrt(sum(e * e for e in d)) > max_rotation_rate * dt:
+            sqrt(sum(e * e for e in d)) > max_rotation_rate * dt_rot:
         return BscmResult(c, x_imu[12:15], d, v_bias, False)
-    b_g = _clamp(tuple(c[k] + gyro_gain * d[k] / dt for k in range(3)), max_gyro_bias)
+    b_g = _clamp(tuple(c[k] + gyro_gain * d[k] / dt_rot for k in range(3)), max_gyro_bias)
     v = tuple(x_imu[12 + k] - velocity_gain * v_bias[k] for k in range(3))
     da = tuple(accel_gain * v_bias[k] / dt for k in range(3))
     Rm = x_mid[0:9]  # b_a += R_OB(mid)^T da

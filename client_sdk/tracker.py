@@ -318,11 +318,14 @@ class Tracker:
             x_imu = self._state_at(t0)
             v = x_imu[12:15]
             o = self.options
-            reset = False
+            reset = keep_ref = False
             if o.bscm and self._ref is not None:
                 t_ref, p_ref = self._ref
                 dt = (t0 - t_ref) * 1e-9
                 x_mid = self._state_at((t_ref + t0) // 2)
+                # closer than the minimum baseline: wait, keeping the reference, so that V_avg (whose
+                # noise is the backend's position noise / dt) always spans at least that baseline
+                keep_ref = dt < o.bscm_min_interval_s
                 if o.bscm_min_interval_s <= dt <= o.bscm_max_interval_s and x_mid is not None:
                     if self._velocity_known:
                         gains = (o.gyro_bias_gain, o.accel_bias_gain, o.velocity_gain, o.bscm_max_velocity_error,
@@ -331,22 +334,35 @@ class Tracker:
                         gains = (0.0, 0.0, 1.0, float("inf"), float("inf"))
                     p_vel = _rot(x_imu, u) if o.bscm_imu_orientation else p
                     res = bscm(self._c, x_imu, R, p_vel, p_ref, x_mid, dt, gains[0], gains[1], gains[2],
-                               o.max_gyro_bias, o.max_accel_bias, gains[3], gains[4])
+                               o.max_gyro_bias, o.max_accel_bias, gains[3], gains[4],
+                               dt_rot=(t0 - self._anchor_t) * 1e-9)
                     self.last_bscm = res
                     if res.accepted:
                         self._c, v, self._velocity_known = res.c, res.v, True
+                        if o.innovation_velocity_gain > 0 and gains[2] < 1.0:
+                            v = self._innovation_velocity(x_imu, u, t0)
                     else:  # backend and IMU disagree beyond belief: reset the PRM, keep the pose
                         reset = True
                         detail = "backend pose disagrees with the IMU: BSCM skipped, PRM reset"
             R_set, p_set = blend_pose(x_imu, R, p, o.pose_gain)
             self._anchor_t, self._anchor_x = t0, R_set + p_set + tuple(v)
             # the reference for the next V_avg, in the same terms as p_vel will be then
-            self._ref = None if reset else (t0, _rot(R_set, u) if o.bscm_imu_orientation else p)
+            if not keep_ref:
+                self._ref = None if reset else (t0, _rot(R_set, u) if o.bscm_imu_orientation else p)
             self._velocity_known = self._velocity_known and not reset
             outcome = ResponseOutcome.APPLIED
             self._corrected = True
         propagate(self._step, self._anchor_x, self._c, t0, buf.samples, buf.states, buf.index_at_or_before(t0) + 1)
         return self._outcome(outcome, detail)
+
+    def _innovation_velocity(self, x_imu: tuple, u: tuple, t0: int) -> tuple:
+        """The velocity at t0 of an alpha-beta filter: the propagated one plus `innovation_velocity_gain`
+        times the position innovation (backend minus propagated, the backend's translation put into O
+        with the propagated orientation) over the time since the pose was last set."""
+        dt = (t0 - self._anchor_t) * 1e-9
+        p_meas = _rot(x_imu, u)
+        k = self.options.innovation_velocity_gain / max(dt, 1e-3)
+        return tuple(x_imu[12 + i] + k * (p_meas[i] - x_imu[9 + i]) for i in range(3))
 
     def _body_pose(self, m: list[float]) -> tuple[tuple, tuple, tuple]:
         """(R_OB, p_OB, u) as float tuples of T_OB = T_CO^-1 T_CB, T_CO given as 16 row-major floats;

@@ -14,6 +14,7 @@ from typing import Self
 from tqdm import tqdm
 
 from client_sdk import TrackerOptions
+from client_sdk.options import preset
 from datasets import sequence as sequence_io
 from datasets.sequence import Sequence
 from estimators.gt_oracle import GtOracleEstimator
@@ -22,6 +23,12 @@ from runners.backends import NOISY_R_DEG, NOISY_T_M, GrpcBackend, InProcessBacke
 from runners.replay import ReplayOptions, replay
 from runners.results import TrackRecord
 from runners.session import model_vertices
+
+
+# The tracker as the paper describes it and ours (client_sdk.options.preset explains both).
+PAPER_FAITHFUL = preset("paper")
+OURS = preset("ours")
+TRACKER_VARIANTS = {"paper": PAPER_FAITHFUL, "ours": OURS}
 
 
 @dataclass(frozen=True)

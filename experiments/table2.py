@@ -3,6 +3,8 @@
 Each cell replays a simulated 30 s sequence (Pixel 2 IMU) in virtual time through a real gRPC
 server on a loopback port, with the paper's network model and device slowdown, and reports the
 per-sequence mean position (mm), orientation (deg) and 2D projection (px) errors beside the paper's.
+Two tracker variants (`experiments.common.TRACKER_VARIANTS`): "ours" (`table2.csv`) and the
+"paper"-faithful one (`table2_paper.csv`, same columns).
 """
 
 from __future__ import annotations
@@ -11,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 
-from client_sdk import TrackerOptions
 from client_sdk.network_model import NetworkOptions
 from experiments import common, paper, plots
 from runners.replay import ReplayOptions
@@ -22,33 +23,40 @@ GT_LIMIT_PX, NOISY_LIMIT_PX = 1.0, 2.5  # what we hold ourselves to (the paper: 
 
 
 def run(out: Path, seeds: list[int], duration_s: float = 30.0, in_process: bool = False, fps_list=paper.FPS,
-        motions=paper.MOTIONS, levels=paper.LEVELS) -> list[list]:
+        motions=paper.MOTIONS, levels=paper.LEVELS, variants=tuple(common.TRACKER_VARIANTS)) -> list[list]:
+    """Rows of the first variant (normally "ours"); every variant's CSV and report section are written."""
     cache = out / "sequences"
     traj_dir = out / "trajectories"
     traj_dir.mkdir(parents=True, exist_ok=True)
-    rows, fine = [], {}
+    rows = {v: [] for v in variants}
+    fine = {v: {} for v in variants}
     cells = [(m, lv, f) for m in motions for lv in levels for f in fps_list]
-    with common.progress(len(seeds) * len(cells) * len(paper.BACKENDS), "table2") as bar:
+    with common.progress(len(seeds) * len(cells) * len(paper.BACKENDS) * len(variants), "table2") as bar:
         for seed in seeds:
             with common.OracleBackend(noise_seed=seed, in_process=in_process) as oracle:
                 for motion, level, fps in cells:
                     seq = common.simulated(cache, common.SimSpec(motion, level, fps, seed, duration_s))
                     for backend in paper.BACKENDS:
-                        options = ReplayOptions(network=NetworkOptions(seed=seed), estimator=backend)
-                        record = oracle.run(seq, TrackerOptions(), options)
-                        s = record.summarize()
-                        rows.append([motion, level, fps, backend, seed, s.pos_mm, s.ori_deg, s.proj_px,
-                                     *paper.TABLE2[(motion, level, fps, backend)]])
-                        fine.setdefault((motion, level, fps, backend), []).append(
-                            100.0 * s.status_counts.get("FINE", 0) / max(1, s.frames))
-                        if seed == seeds[0]:
-                            record.write(traj_dir, f"{motion}_{level}_{fps}fps_{backend}")
-                        bar.set_postfix_str(f"{motion}/{level}/{fps}/{backend}: {s.proj_px:.2f} px")
-                        bar.update()
-    common.write_csv(out / "table2.csv", HEADER, rows)
-    plots.table2(rows, out / "table2.png")
-    (out / "table2.md").write_text(report(rows, seeds, duration_s, in_process, fine))
-    return rows
+                        for variant in variants:
+                            options = ReplayOptions(network=NetworkOptions(seed=seed), estimator=backend)
+                            record = oracle.run(seq, common.TRACKER_VARIANTS[variant], options)
+                            s = record.summarize()
+                            rows[variant].append([motion, level, fps, backend, seed, s.pos_mm, s.ori_deg, s.proj_px,
+                                                  *paper.TABLE2[(motion, level, fps, backend)]])
+                            fine[variant].setdefault((motion, level, fps, backend), []).append(
+                                100.0 * s.status_counts.get("FINE", 0) / max(1, s.frames))
+                            if seed == seeds[0]:
+                                record.write(traj_dir, f"{variant}_{motion}_{level}_{fps}fps_{backend}")
+                            bar.set_postfix_str(f"{motion}/{level}/{fps}/{backend}/{variant}: {s.proj_px:.2f} px")
+                            bar.update()
+    sections = []
+    for variant in variants:
+        suffix = "" if variant == "ours" else f"_{variant}"
+        common.write_csv(out / f"table2{suffix}.csv", HEADER, rows[variant])
+        plots.table2(rows[variant], out / f"table2{suffix}.png")
+        sections.append(report(rows[variant], seeds, duration_s, in_process, fine[variant], variant, suffix))
+    (out / "table2.md").write_text("\n".join(sections))
+    return rows[variants[0]]
 
 
 def _cells(rows: list[list]) -> dict[tuple, np.ndarray]:
@@ -59,11 +67,17 @@ def _cells(rows: list[list]) -> dict[tuple, np.ndarray]:
     return {k: np.array(v) for k, v in cells.items()}
 
 
+VARIANT_TITLES = {
+    "ours": "ours (pose_gain 0.5, velocity_gain 0.25, gyro_bias_gain 0.02, bscm_min_interval_s 0.1)",
+    "paper": "paper-faithful (each backend pose resets the state; BSCM with the damped default gains)",
+}
+
+
 def report(rows: list[list], seeds: list[int], duration_s: float, in_process: bool,
-           fine: dict[tuple, list[float]]) -> str:
+           fine: dict[tuple, list[float]], variant: str = "ours", suffix: str = "") -> str:
     cells = _cells(rows)
     lines = [
-        "# Table 2 rerun: pose errors per motion program, frame rate and backend", "",
+        f"# Table 2 rerun, tracker {VARIANT_TITLES.get(variant, variant)}", "",
         (f"Seeds {seeds}; {duration_s:g} s sequences; backend {'in-process' if in_process else 'a real gRPC server on loopback'}; "
         "network 50 Mbps, 10 ms each way, U(0, 30) ms, 100 kB a request; Pixel 2 slowdown 2.46; "
         f"Noisy backend: 3 mm and 0.3 deg per axis (the paper gives no sigma)."), "",
@@ -98,7 +112,7 @@ def report(rows: list[list], seeds: list[int], duration_s: float, in_process: bo
                                              + [f"{np.mean(fine[(m, lv, f, b)]):.0f}" if (m, lv, f, b) in fine else ""
                                                 for m, lv in programs]
                                              for b in paper.BACKENDS for f in fps_list]),
-              "", "![2D error per cell](table2.png)", "",
-              ("Files: `table2.csv` (one row per cell and seed), `trajectories/*.tum` (estimate and ground truth, "
-              "TUM format, readable by evo), `trajectories/*_frames.csv` (per-frame errors).")]
+              "", f"![2D error per cell](table2{suffix}.png)", "",
+              (f"Files: `table2{suffix}.csv` (one row per cell and seed), `trajectories/{variant}_*.tum` (estimate "
+              "and ground truth, TUM format, readable by evo), `trajectories/*_frames.csv` (per-frame errors).")]
     return "\n".join(lines) + "\n"

@@ -31,6 +31,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="Track streams (the device's path) or unary Estimate calls")
     parser.add_argument("--channels", type=int, default=1,
                         help="gRPC channels the clients share (0 = one per client, as separate devices have)")
+    parser.add_argument("--await-admission", action="store_true",
+                        help="wait for a new stream's admission (a flextrack server's initial metadata) before its "
+                             "first frame; needed to see refusals under --max-streams as RESOURCE_EXHAUSTED")
     parser.add_argument("--ramp", action="store_true",
                         help="find the largest --clients whose p99 stays under --p99-bound-ms (--clients is the start)")
     parser.add_argument("--p99-bound-ms", type=float, default=50.0, help="latency bound of --ramp")
@@ -59,7 +62,8 @@ def _spec(args: argparse.Namespace):
             metadata = creds.token_metadata(token)
     targets = tuple(t for t in args.target.split(",") if t.strip())
     return LoadSpec(targets, args.clients, args.fps, args.duration, args.warmup, args.rpc, args.channels,
-                    seed=args.seed, metadata=metadata, credentials=credentials, server_name=args.tls_server_name)
+                    seed=args.seed, metadata=metadata, credentials=credentials, server_name=args.tls_server_name,
+                    await_admission=args.await_admission)
 
 
 def _workload(args: argparse.Namespace):

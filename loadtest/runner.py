@@ -47,6 +47,10 @@ class LoadSpec:
     metadata: tuple[tuple[str, str], ...] = ()
     credentials: grpc.ChannelCredentials | None = None  # TLS (and token) credentials; None = plaintext
     server_name: str | None = None  # name to check in the server's certificate, if not the target's host
+    # Wait for a new stream's initial metadata (flextrack's admission answer) before the first frame. An
+    # asyncio client whose write races a refusal sees INTERNAL instead of RESOURCE_EXHAUSTED; but a server
+    # that sends no early metadata (the echo servicer) would stall the first frame until its answer.
+    await_admission: bool = False
 
     def __post_init__(self) -> None:
         if not self.targets:
@@ -137,8 +141,12 @@ async def _client(idx: int, spec: LoadSpec, workload: Workload, channel: grpc.ai
                 else:
                     if call is None:
                         call = track(metadata=spec.metadata)
-                    await call.write(request)
-                    response = await asyncio.wait_for(call.read(), spec.deadline_s)
+                        if spec.await_admission:
+                            await asyncio.wait_for(call.initial_metadata(), spec.deadline_s)
+                    response = grpc.aio.EOF
+                    if not call.done():
+                        await call.write(request)
+                        response = await asyncio.wait_for(call.read(), spec.deadline_s)
                     if response is grpc.aio.EOF:  # refused, or ended by the server: count it, open a new one
                         outcome, call = f"grpc:{(await call.code()).name}", None
                     else:

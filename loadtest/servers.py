@@ -72,9 +72,12 @@ def start_serve(serve_args: list[str], name: str = "flextrack", port: int | None
     """`flextrack serve --host 127.0.0.1 --port P ARGS...` in a child process, returned once SERVING."""
     port = port or free_port()
     address = f"127.0.0.1:{port}"
-    log = open(log_path, "ab") if log_path else subprocess.DEVNULL
-    process = subprocess.Popen([sys.executable, "-m", "flextrack", "serve", "--host", "127.0.0.1", "--port", str(port),
-                                *serve_args], cwd=REPO, stdout=log, stderr=log)
+    command = [sys.executable, "-m", "flextrack", "serve", "--host", "127.0.0.1", "--port", str(port), *serve_args]
+    if log_path:
+        with open(log_path, "ab") as log:  # the child keeps its own copy of the file descriptor
+            process = subprocess.Popen(command, cwd=REPO, stdout=log, stderr=log)
+    else:
+        process = subprocess.Popen(command, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     server = ServerProcess(name, address, process)
     try:
         wait_serving(address, process=process)

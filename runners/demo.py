@@ -4,7 +4,7 @@
    Pixel-2-grade IMU;
 2. start a backend on a loopback port with the service's embedded default config
    (`service/default_config.toml`: the "gt_oracle" and "gt_noisy" oracles, given that sequence);
-3. track it LIVE: IMU and frames fed in real time, requests over the `Track` stream through the
+3. track it LIVE (tracker options `--tracker`, default "ours"): IMU and frames fed in real time, requests over the `Track` stream through the
    latency interceptor (50 Mbps, 10 ms each way, U(0, 30) ms, 100 kB a request) with the Pixel 2
    slowdown, a progress line while it runs;
 4. replay the same sequence in virtual time with both backends, for comparison;
@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from client_sdk import TrackerOptions
+from client_sdk.options import preset
 from client_sdk.network_model import NetworkOptions
 from client_sdk.slowdown import PIXEL2_FACTOR
 from datasets import sequence as sequence_io
@@ -37,6 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fps", type=float, default=120.0)
     parser.add_argument("--backend", choices=("gt", "noisy"), default="noisy", help="backend of the live run")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--tracker", choices=("ours", "paper"), default="ours",
+                        help="tracker options: 'paper' resets to each backend pose as the paper does, 'ours' filters "
+                             "them (client_sdk.options.preset)")
     parser.add_argument("--no-replay", action="store_true", help="only the live run")
 
 
@@ -74,7 +77,7 @@ def run(args) -> int:
         print(f"flextrack demo: cannot load the default backend config {DEFAULT_CONFIG}: {exc}", file=sys.stderr)
         return 2
     network = NetworkOptions(seed=args.seed)
-    tracker_options = TrackerOptions()
+    tracker_options = preset(args.tracker)
     print(f"[2/4] backend on loopback, {DEFAULT_CONFIG.name}: estimators {registry.names()}")
     print(f"      network: {network.bandwidth_mbps:g} Mbps, {network.propagation_ms:g} ms each way, "
           f"U(0, {network.extra_max_ms:g}) ms extra, {network.fixed_payload_bytes // 1024} kB a request; "

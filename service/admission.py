@@ -15,7 +15,8 @@ server's own transport (a cheap estimator, 100 kB frames), refusing single frame
 refused frame was still received and parsed. There the bound that works is on devices: past
 `max_streams` open Track streams a new stream fails at once with RESOURCE_EXHAUSTED, before any frame
 is read; the device keeps tracking on its IMU and retries with backoff (or, behind round_robin, is
-served by another replica). Health checks are never bounded.
+served by another replica). Health checks are never bounded. An admitted stream gets its initial
+metadata at once: a client can wait for admission (metadata or refusal) before its first frame.
 
 The interceptor also feeds the metrics (service.metrics): every answer's outcome and latency, and
 the queue depth, and parses the request bytes itself, so that bytes that are not a request message
@@ -121,12 +122,12 @@ class AdmissionInterceptor(grpc.aio.ServerInterceptor):
     def _wrap_track(self, behaviour, parse):
         async def track(raw_iterator, context):
             if self.max_streams and self.streams >= self.max_streams:
-                # Take the first frame (unparsed) before refusing: an asyncio client still writing it when the
-                # stream ends sees its write fail and the call end INTERNAL instead of with this status.
-                await anext(aiter(raw_iterator), None)
                 self._observe("Track", "-", REJECTED_CODE, None)
                 await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED,
                                     f"server is at capacity ({self.max_streams} streams); retry with backoff")
+            # Admitted: say so at once with the initial metadata, so that a client can wait for this answer
+            # before it sends a 100 kB frame into a stream that might be refused.
+            await context.send_initial_metadata(())
             self.streams += 1
             if self.metrics:
                 self.metrics.set_streams(self.streams)

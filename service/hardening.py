@@ -71,7 +71,7 @@ class Hardening:
         self.admission = AdmissionInterceptor(self.max_queue, self.metrics, max_streams=self.max_streams)
 
     @classmethod
-    def from_args(cls, args: argparse.Namespace) -> "Hardening":
+    def from_args(cls, args: argparse.Namespace) -> Hardening:
         """Read the flags of add_arguments; files are read now, so a bad path fails before serving."""
         tokens = security.load_tokens(args.token_file) if args.token_file else []
         hardening = cls(args.tls_cert, args.tls_key, args.client_ca, tokens, args.max_queue, args.max_streams,

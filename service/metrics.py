@@ -24,6 +24,7 @@ BATCH_BUCKETS = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 64)
 class ServiceMetrics:
     def __init__(self, registry: CollectorRegistry | None = None):
         self.registry = registry or CollectorRegistry()
+        self._children: dict[tuple, object] = {}
         self.requests = Counter("flextrack_requests", "Frames answered, by method, estimator and outcome code",
                                 ["method", "estimator", "code"], registry=self.registry)
         self.latency = Histogram("flextrack_request_latency_seconds", "Time from a frame reaching the servicer to "
@@ -37,9 +38,16 @@ class ServiceMetrics:
 
     def observe(self, method: str, estimator: str, code: str, seconds: float | None) -> None:
         """One answered frame; `seconds` None for frames refused before any work (not in the histogram)."""
-        self.requests.labels(method, estimator, code).inc()
+        key = (method, estimator, code)
+        counter = self._children.get(key)  # labels() costs a lock and a lookup: keep the children at hand
+        if counter is None:
+            counter = self._children[key] = self.requests.labels(*key)
+        counter.inc()
         if seconds is not None:
-            self.latency.labels(method, estimator).observe(seconds)
+            histogram = self._children.get(key[:2])
+            if histogram is None:
+                histogram = self._children[key[:2]] = self.latency.labels(method, estimator)
+            histogram.observe(seconds)
 
     def set_queue_depth(self, estimator: str, depth: int) -> None:
         self.queue_depth.labels(estimator).set(depth)

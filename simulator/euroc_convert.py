@@ -3,11 +3,21 @@
 The IMU and the ground truth are copied unchanged; the camera is EuRoC's cam0 (752x480, radtan
 distortion, T_BS of cam0 is our T_BC). There are no images of an object, so a virtual object is
 placed in the Vicon world where cam0 sees it for as much of the run as possible: candidate points
-are put on the optical axes of the frames at several depths, and the one that projects inside the
-image (with a margin for the object's size) at 0.6 m..max_distance_m in the most frames wins.
-The object stands upright (world z is up in EuRoC's Vicon frame) and faces the cameras. Frames
-are at cam0's 20 Hz or any rate asked; their camera poses are the Vicon body poses interpolated at
-the frame times and moved to cam0 by T_BC.
+are put on the optical axes of the frames at several depths, and the one seen whole, and large
+enough for the PIA (its image box >= frame area / 100, with a margin), in the most frames wins.
+The object may be scaled (`object_scale`: a scaled copy of the BOP model, mm, is written into the
+sequence's models/): the MAV flies 1-4 m from anything, where a 15 cm object is far below the
+PIA's area limit in cam0. The object stands upright (world z is up in EuRoC's Vicon frame) and
+faces the cameras.
+
+Frames are at cam0's 20 Hz or any rate asked, from `IMU_LEAD_S` after the IMU's first sample: the
+MAV recordings begin with ~0.7 s of stillness, and the tracker initialises gravity and gyro bias
+from the 0.5 s of still IMU before its first frame (the paper's "System Initialization"). The
+Vicon ground truth of V1_02 starts ~1 s after the IMU, when the MAV already moves; the poses of
+the frames before it are the first ground-truth state integrated backwards with the IMU, using the
+ground truth's own velocity and biases (`_backfill`; over < 0.5 s the IMU noise moves them by far
+less than a millimetre). Camera poses are the body poses interpolated at the frame times and moved
+to cam0 by T_BC.
 """
 
 from __future__ import annotations
@@ -26,7 +36,10 @@ from simulator.render import load_model
 from simulator.sequence_writer import bop_obj_id_of, install_model, write_sequence
 
 MIN_DISTANCE_M, MAX_DISTANCE_M = 0.6, 3.0
-IMU_LEAD_S = 1.0  # the IMU starts at least this long before the first frame
+IMU_LEAD_S = 0.55  # the first frame comes this long after the IMU starts: 0.5 s still window + margin
+OBJECT_SCALE = 4.0  # default: the 15 cm default object becomes a 58 cm box, which PIA accepts to ~2.2 m in cam0
+AREA_MARGIN = 1.3  # placement counts a frame as seen when the object's image box is >= 1.3 x THR_area
+GRAVITY_W = np.array([0.0, 0.0, -9.81])  # EuRoC's Vicon world: z up
 
 
 @dataclass
@@ -53,6 +66,14 @@ def visibility(points_W: np.ndarray, T_WC: np.ndarray, camera: PinholeCamera, ra
             & (v - margin >= 0) & (v + margin <= camera.height - 1))
 
 
+def pia_distance_m(camera: PinholeCamera, box_size_m: np.ndarray, area_divisor: float = 100.0) -> float:
+    """Farthest distance at which the object's image box still covers AREA_MARGIN x frame area /
+    `area_divisor` seen along its least favourable side (the two smallest box edges)."""
+    a, b = np.sort(np.asarray(box_size_m, float))[:2]
+    thr = AREA_MARGIN * camera.width * camera.height / area_divisor
+    return float(np.sqrt(camera.fx * camera.fy * a * b / thr))
+
+
 def place_object(T_WC: np.ndarray, camera: PinholeCamera, radius_m: float,
                  max_distance_m: float = MAX_DISTANCE_M) -> Placement:
     """The candidate point (on the optical axes of ~150 frames, at 5 depths) seen whole in the most frames."""
@@ -70,7 +91,7 @@ def place_object(T_WC: np.ndarray, camera: PinholeCamera, radius_m: float,
 
 def convert_euroc(euroc_dir: str | Path, out_dir: str | Path, *, fps: float | None = None,
                   object_path: str | Path | None = None, object_id: str | None = None,
-                  max_distance_m: float = MAX_DISTANCE_M) -> Path:
+                  max_distance_m: float = MAX_DISTANCE_M, object_scale: float = OBJECT_SCALE) -> Path:
     """Write the sequence folder `out_dir` from a EuRoC folder holding imu0.csv, groundtruth.csv,
     cam0_sensor.yaml and imu0_sensor.yaml (or the mav0/ layout: imu0/data.csv, ...)."""
     src = Path(euroc_dir)
@@ -85,14 +106,16 @@ def convert_euroc(euroc_dir: str | Path, out_dir: str | Path, *, fps: float | No
         raise ValueError("fps must be positive")
     if not max_distance_m > MIN_DISTANCE_M:
         raise ValueError(f"the object's maximum distance must exceed {MIN_DISTANCE_M} m")
+    if not (np.isfinite(object_scale) and object_scale > 0):
+        raise ValueError(f"object_scale must be a positive number, got {object_scale!r}")
 
-    gt_poses = np.stack([se3.from_quat_translation(q, p) for q, p in zip(gt.q_WB, gt.p_WB)])
-    first = max(int(gt.t_ns[0]), int(imu.t_ns[0]) + int(IMU_LEAD_S * 1e9))
+    first = int(imu.t_ns[0]) + int(IMU_LEAD_S * 1e9)
     last = min(int(gt.t_ns[-1]), int(imu.t_ns[-1]))
-    if last <= first:
-        raise ValueError(f"{src}: the IMU and the ground truth do not overlap by more than {IMU_LEAD_S} s")
+    if last <= max(first, int(gt.t_ns[0])):
+        raise ValueError(f"{src}: the IMU and the ground truth do not overlap")
     frame_t = np.arange(first, last + 1, round(1e9 / fps), dtype=np.int64)
-    T_WB = np.stack([se3.interpolate_at(gt.t_ns, gt_poses, int(t)) for t in frame_t])
+    gt_t, gt_poses = _backfill(gt, imu, min(first, int(gt.t_ns[0])))
+    T_WB = np.stack([se3.interpolate_at(gt_t, gt_poses, int(t)) for t in frame_t])
     T_WC = T_WB @ cam.T_BS
 
     source = Path(object_path) if object_path is not None else default_object.DEFAULT_DIR / "obj_000001.ply"
@@ -100,10 +123,17 @@ def convert_euroc(euroc_dir: str | Path, out_dir: str | Path, *, fps: float | No
         object_id = default_object.OBJECT_ID if object_path is None else source.stem
     bop_obj_id = default_object.BOP_OBJ_ID if object_path is None else bop_obj_id_of(source)
     root = Path(out_dir)
-    model = install_model(source, root, bop_obj_id)
+    model = install_model(source, root, bop_obj_id) if object_scale == 1.0 else \
+        install_scaled_model(source, root, bop_obj_id, object_scale)
     vertices = np.asarray(load_model(model).vertices)
     centre_O = (vertices.min(axis=0) + vertices.max(axis=0)) / 2
-    placement = place_object(T_WC, camera, float(np.linalg.norm(vertices - centre_O, axis=1).max()), max_distance_m)
+    pia_reach_m = pia_distance_m(camera, vertices.max(axis=0) - vertices.min(axis=0))
+    reach_m = min(max_distance_m, pia_reach_m)
+    if not reach_m > MIN_DISTANCE_M:
+        raise ValueError(f"the object (scale {object_scale:g}) is too small for the PIA in this camera beyond "
+                         f"{pia_reach_m:.2f} m, below the {MIN_DISTANCE_M} m minimum: use an object scale of at "
+                         f"least {object_scale * 1.5 * MIN_DISTANCE_M / pia_reach_m:.1f}")
+    placement = place_object(T_WC, camera, float(np.linalg.norm(vertices - centre_O, axis=1).max()), reach_m)
     facing = np.median(T_WC[:, :3, 3], axis=0) - placement.centre_W  # turn the object's +x to the cameras
     R_WO = so3.exp(np.array([0.0, 0.0, np.arctan2(facing[1], facing[0])]))
     T_WO = se3.make(R_WO, placement.centre_W - R_WO @ centre_O)
@@ -115,7 +145,9 @@ def convert_euroc(euroc_dir: str | Path, out_dir: str | Path, *, fps: float | No
         object_id=object_id, bop_obj_id=bop_obj_id, model_path=model, groundtruth=gt,
         meta={
             "converter": {"source": str(src.resolve()), "fps": fps, "object": str(object_path or "default"),
-                          "imu_lead_s": IMU_LEAD_S, "max_distance_m": max_distance_m},
+                          "object_scale": float(object_scale), "imu_lead_s": IMU_LEAD_S,
+                          "max_distance_m": max_distance_m, "placement_distance_m": reach_m,
+                          "groundtruth_backfilled_s": max(0.0, (int(gt.t_ns[0]) - first) * 1e-9)},
             "placement": {"centre_W": placement.centre_W.tolist(), "visible_fraction": placement.visible_fraction,
                           "distance_m_min_median_max": list(placement.distance_m)},
             "times_ns": {"imu_start": int(imu.t_ns[0]), "end": int(last)},
@@ -123,6 +155,51 @@ def convert_euroc(euroc_dir: str | Path, out_dir: str | Path, *, fps: float | No
     )
     write_sequence(seq)
     return root
+
+
+def install_scaled_model(source: Path, root: Path, bop_obj_id: int, scale: float) -> Path:
+    """Write root/models/obj_<id>.ply, the model scaled by `scale` (mm, colours kept), with its
+    models_info.json."""
+    import trimesh
+
+    from datasets import bop
+    from simulator.sequence_writer import models_info
+
+    if not Path(source).is_file():
+        raise FileNotFoundError(f"object model {source} does not exist")
+    mesh = trimesh.load(source, process=False, force="mesh")
+    mesh.apply_scale(scale)
+    models = root / "models"
+    models.mkdir(parents=True, exist_ok=True)
+    dst = models / f"obj_{bop_obj_id:06d}.ply"
+    mesh.export(dst, encoding="binary")
+    bop.write_models_info(models / "models_info.json", {bop_obj_id: models_info(np.asarray(mesh.vertices))})
+    return dst
+
+
+def _backfill(gt: euroc.GroundTruth, imu: euroc.ImuData, t_from_ns: int) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth times and T_WB from `t_from_ns`: the recorded ones, preceded (when the IMU starts
+    before the ground truth) by the first recorded state integrated backwards through the IMU with
+    the ground truth's velocity and biases, at the IMU's sample times."""
+    poses = np.stack([se3.from_quat_translation(q, p) for q, p in zip(gt.q_WB, gt.p_WB)])
+    times = np.asarray(gt.t_ns, dtype=np.int64)
+    back = np.flatnonzero((imu.t_ns >= t_from_ns) & (imu.t_ns < times[0]))
+    if not len(back):
+        return times, poses
+    R, p, v = poses[0][:3, :3].copy(), poses[0][:3, 3].copy(), np.asarray(gt.v_WB[0], float).copy()
+    b_g, b_a = np.asarray(gt.bias_gyro[0], float), np.asarray(gt.bias_accel[0], float)
+    t = int(times[0])
+    out_t, out_T = [], []
+    for i in back[::-1]:  # newest first, stepping back from the first ground-truth state
+        dt = (t - int(imu.t_ns[i])) * 1e-9
+        a_W = R @ (imu.accel[i] - b_a) + GRAVITY_W
+        p = p - dt * v + 0.5 * dt * dt * a_W
+        v = v - dt * a_W
+        R = R @ so3.exp(-(imu.gyro[i] - b_g) * dt)
+        t = int(imu.t_ns[i])
+        out_t.append(t)
+        out_T.append(se3.make(R, p))
+    return np.concatenate([np.array(out_t[::-1], dtype=np.int64), times]), np.concatenate([np.stack(out_T[::-1]), poses])
 
 
 def _find_files(src: Path) -> dict[str, Path]:

@@ -6,12 +6,19 @@ acceleration are exact at any time. World W: z up, the object's centre at `targe
 the start of the IMU record; the device is held still until `still_s`, then the program eases in
 over `ramp_s` and runs to `still_s + duration_s`.
 
+Distance: the device starts 1.2 m from the object (the paper's "initial distance ... about 1.2
+meters") and, while the program eases in, moves in to a working distance of about 0.95 m
+(`WORK_DISTANCE_M`), as a user steps closer to what they look at. The approach rides on the ramp's
+envelope, so it is over before the steady part whose accelerations Table 3 lists; its speed counts
+in the averages. At 1.2 m a 15 cm object covers about frame area / 100, the paper's PIA threshold
+for a lost track; at ~0.95 m it covers about twice that.
+
 - translational: dolly (along the view), pedestal (up/down) and truck (sideways) about a nominal
-  pose 1.2 m from the object, looking at it; a small scripted sway of the orientation on the
-  medium and hard levels. The object stays near the image centre.
-- circular: the camera orbits the object (horizontal radius ~1.1 m, ~0.5 m above it), always
-  looking at it, with a slow tangential/vertical loop on top of the orbit, and (medium, hard) a
-  steady roll about the optical axis, so that the angular rate reaches Table 3's.
+  pose at the working distance, looking at the object; a small scripted sway of the orientation on
+  the medium and hard levels. The object stays near the image centre.
+- circular: the camera orbits the object, always looking at it, with a slow tangential/vertical
+  loop centred on the working distance (so the distance stays near it), and (medium, hard) a steady
+  roll about the optical axis, so that the angular rate reaches Table 3's.
 - static: held still throughout (for noise studies: the Allan deviation).
 - shake: band-limited random sums of sinusoids (0.4-2.5 Hz, seeded) on position and on three
   small rotation angles, scaled to an RMS speed / angular rate that grows with the level.
@@ -83,9 +90,9 @@ PROGRAMS = {
     ("translational", "easy"): Translational(0.0, 1.0, 0.24, 0.22, 0.24, 0.27, 0.09, 0.41, 0.0, 1.0),
     ("translational", "medium"): Translational(0.047, 2.1, 0.040, 2.6, 0.06, 0.3, 0.0, 1.0, 0.006, 2.2),
     ("translational", "hard"): Translational(0.0555, 2.6, 0.085, 2.0, 0.06, 0.3, 0.0, 1.0, 0.0068, 5.7),
-    ("circular", "easy"): Circular(0.048, 0.26, 0.21, 0.0),
-    ("circular", "medium"): Circular(0.120, 0.19, 0.475, 0.38),
-    ("circular", "hard"): Circular(0.185, 0.2066, 0.66, 0.46),
+    ("circular", "easy"): Circular(0.0235, 0.239, 0.2104, 0.0),
+    ("circular", "medium"): Circular(0.1317, 0.1632, 0.5033, 0.3511),
+    ("circular", "hard"): Circular(0.2075, 0.1709, 0.7228, 0.4162),
 }
 _STILL = Translational(0.0, 1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 1.0)
 PROGRAMS.update({("static", level): _STILL for level in LEVELS})  # held still throughout (noise studies)
@@ -98,7 +105,8 @@ SHAKES = {
     ("circular", "hard"): Shake(0.016, 0.045),
     **{("static", level): Shake(0.0, 0.0) for level in LEVELS},
 }
-DISTANCE_M = 1.2  # camera to object centre at the start
+DISTANCE_M = 1.2  # camera to object centre at the start (the paper's initial distance)
+WORK_DISTANCE_M = 0.95  # reached by the end of the ramp (see module doc)
 ELEVATION_RAD = np.radians(25.0)  # camera above the object, looking down at it
 SHAKE_BAND_HZ = (0.4, 2.5)
 SHAKE_TONES = 8
@@ -160,9 +168,9 @@ class MotionProgram:
         t = np.atleast_1d(np.asarray(t, float))
         tau, envelope = self._clock(t)
         if self.motion != "circular":
-            pos, factors = self._translational(tau)
+            pos, factors = self._translational(tau, envelope)
         else:
-            pos, factors = self._circular(tau)
+            pos, factors = self._circular(tau, envelope)
         if not scripted:
             amps, omegas, phases = self._shake_tones["pos"]
             shake_pos = jet.stack([_sum_of_sines(tau, *ch) * envelope for ch in zip(amps, omegas, phases)])
@@ -173,7 +181,13 @@ class MotionProgram:
         R, w, alpha = compose_rotations(factors, len(t))
         return Kinematics(R, pos.v, pos.d1, pos.d2, w, alpha)
 
-    def _translational(self, tau: Jet) -> tuple[Jet, list]:
+    def _approach(self, envelope: Jet) -> Jet:
+        """Distance moved towards the object: 0 while still, DISTANCE_M - WORK_DISTANCE_M after the ramp."""
+        if self.motion == "static":
+            return 0.0 * envelope
+        return (DISTANCE_M - WORK_DISTANCE_M) * envelope
+
+    def _translational(self, tau: Jet, envelope: Jet) -> tuple[Jet, list]:
         p = self.params
         offset = DISTANCE_M * np.array([np.cos(ELEVATION_RAD) * np.cos(self.heading),
                                         np.cos(ELEVATION_RAD) * np.sin(self.heading), np.sin(ELEVATION_RAD)])
@@ -183,7 +197,7 @@ class MotionProgram:
         zero = Jet.const(0.0, tau)
         loop_a = p.r_loop * (jet.sin(tau * p.w_loop))
         loop_b = p.r_loop * (jet.cos(tau * p.w_loop) - 1.0)
-        dolly = p.dolly * jet.sin(tau * p.w_dolly)
+        dolly = p.dolly * jet.sin(tau * p.w_dolly) + self._approach(envelope)
         drift = p.drift * jet.sin(tau * p.w_drift)
         pedestal = p.pedestal * jet.sin(tau * p.w_pedestal)
         comps = []
@@ -196,15 +210,17 @@ class MotionProgram:
             factors += [(Y, p.sway * jet.sin(tau * p.w_sway)), (X, p.sway * (jet.cos(tau * p.w_sway) - 1.0))]
         return jet.stack(comps), factors
 
-    def _circular(self, tau: Jet) -> tuple[Jet, list]:
+    def _circular(self, tau: Jet, envelope: Jet) -> tuple[Jet, list]:
         p = self.params
-        radius = DISTANCE_M * np.cos(ELEVATION_RAD)
-        height = DISTANCE_M * np.sin(ELEVATION_RAD)
+        # Start at DISTANCE_M; during the ramp move in and down so that the loop below is centred
+        # on a point WORK_DISTANCE_M from the object at the same elevation.
+        work_r, work_h = WORK_DISTANCE_M * np.cos(ELEVATION_RAD), WORK_DISTANCE_M * np.sin(ELEVATION_RAD)
+        r = DISTANCE_M * np.cos(ELEVATION_RAD) + (work_r - DISTANCE_M * np.cos(ELEVATION_RAD)) * envelope
+        height = DISTANCE_M * np.sin(ELEVATION_RAD) + (work_h - p.r_loop - DISTANCE_M * np.sin(ELEVATION_RAD)) * envelope
         # A loop in the tangential/vertical plane on top of the orbit: the tangential part is an
         # azimuth swing, so the orbit keeps its radius.
-        azimuth = self.heading + tau * p.w_orbit + (p.r_loop / radius) * jet.sin(tau * p.w_loop)
+        azimuth = self.heading + tau * p.w_orbit + (p.r_loop / work_r) * jet.sin(tau * p.w_loop)
         h = height + p.r_loop * (1.0 - jet.cos(tau * p.w_loop))
-        r = Jet.const(radius, tau)
         pos = jet.stack([self.target_W[0] + r * jet.cos(azimuth), self.target_W[1] + r * jet.sin(azimuth),
                          h + self.target_W[2]])
         yaw = azimuth + np.pi

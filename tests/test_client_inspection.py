@@ -25,29 +25,19 @@ def test_area_of_a_cube_seen_face_on_is_its_front_face():
     assert insp.area(uv) == pytest.approx((500 * 0.2 / 0.9) ** 2, rel=1e-12)
 
 
-def test_area_matches_a_brute_force_silhouette():
+def test_area_is_the_image_bounding_box_of_the_projected_corners():
     rng = np.random.default_rng(3)
     insp = PoseInspector(CAM, BOX)
     for _ in range(20):
         R = so3.exp(rng.normal(size=3))
         t = np.array([rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2), rng.uniform(0.8, 1.5)])
         uv = _uv(insp, R, t)
-        # convex hull area (monotone chain over the 8 points) as a reference
-        def turn(o, a, b):
-            return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
-
-        pts = sorted(map(tuple, uv))
-        hull = []
-        for seq in (pts, pts[::-1]):
-            start = len(hull)
-            for p in seq:
-                while len(hull) - start >= 2 and turn(hull[-2], hull[-1], p) <= 0:
-                    hull.pop()
-                hull.append(p)
-            hull.pop()
-        h = np.array(hull)
-        ref = 0.5 * abs(np.dot(h[:, 0], np.roll(h[:, 1], -1)) - np.dot(h[:, 1], np.roll(h[:, 0], -1)))
-        assert insp.area(uv) == pytest.approx(ref, rel=1e-9)
+        lo, hi = uv.min(axis=0), uv.max(axis=0)
+        assert insp.area(uv) == pytest.approx((hi[0] - lo[0]) * (hi[1] - lo[1]), rel=1e-12)
+    # a cube turned 45 deg about the optical axis: its face is a diamond, its image box the square around it
+    uv = _uv(insp, so3.exp(np.array([0.0, 0.0, np.pi / 4])), [0, 0, 1.0])
+    side = 500 * 0.2 / 0.9
+    assert insp.area(uv) == pytest.approx(2 * side**2, rel=1e-9)
 
 
 def test_projection_matches_the_shared_camera_model():

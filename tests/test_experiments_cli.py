@@ -27,7 +27,9 @@ def test_table2_on_short_sequences_writes_the_agreed_csv(tmp_path, capsys):
                       and r["backend"] == "noisy")["paper_proj_px"]) == 2.01
     assert (out / "table2.png").stat().st_size > 0
     assert "Table 2 rerun" in (out / "table2.md").read_text()
-    tum = out / "trajectories" / "circular_medium_30fps_gt_estimate.tum"
+    paper_rows = _csv(out / "table2_paper.csv")  # the paper-faithful tracker, same columns
+    assert list(paper_rows[0]) == list(rows[0]) and len(paper_rows) == len(rows)
+    tum = out / "trajectories" / "ours_circular_medium_30fps_gt_estimate.tum"
     assert tum.read_text().startswith("# timestamp tx ty tz qx qy qz qw")
     assert "Table 2 rerun" in capsys.readouterr().out
 
@@ -66,4 +68,4 @@ def test_euroc_writes_the_agreed_csv(tmp_path):
     assert main(["experiment", "euroc", "--out", str(out), "--in-process"]) == 0
     rows = _csv(out / "euroc.csv")
     assert list(rows[0]) == ["variant", "pos_mm", "ori_deg", "proj_px"]
-    assert [r["variant"] for r in rows] == ["full", "bscm_off"]
+    assert [r["variant"] for r in rows] == ["full", "bscm_off", "ours"]

@@ -9,6 +9,7 @@ from __future__ import annotations
 import grpc
 import numpy as np
 import pytest
+from grpc_harness import serve
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -16,7 +17,6 @@ from benchmarks.toy_sequence import write_orbit_sequence
 from estimators.registry import EstimatorRegistry
 from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
-from grpc_harness import serve
 from loadtest.workload import synthetic
 from service.admission import AdmissionInterceptor
 from service.cli import DEFAULT_CONFIG
@@ -143,7 +143,7 @@ def test_bytes_that_are_not_protobuf_are_refused_cleanly(server):
             # in a stream the bad frame is answered and the stream goes on
             answers = list(track(iter([raw, pb.EstimateRequest(frame_id=5).SerializeToString()]), timeout=10,
                                  metadata=METADATA))
-            assert [a.status for a in answers][0] == pb.EstimateResponse.INVALID_INPUT and len(answers) == 2
+            assert len(answers) == 2 and answers[0].status == pb.EstimateResponse.INVALID_INPUT
             assert answers[1].frame_id == 5 and _no_trace(answers[0].message)
 
     check()

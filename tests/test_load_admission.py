@@ -100,7 +100,7 @@ def test_stream_bound_refuses_new_devices_at_once_and_keeps_health_open():
     estimator, metrics = SlowEstimator(0.002), ServiceMetrics()
     admission = AdmissionInterceptor(0, metrics, max_streams=2)
     with serve(EstimatorRegistry([estimator]), interceptors=[admission]) as address:
-        spec = runner.LoadSpec((address,), clients=5, fps=30, duration_s=1.0, warmup_s=0.5)
+        spec = runner.LoadSpec((address,), clients=5, fps=30, duration_s=1.0, warmup_s=0.5, await_admission=True)
         result = runner.run(spec, workload.synthetic(payload_kb=5, frames=2))
         with grpc.insecure_channel(address) as channel:
             health = health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(), timeout=5)

@@ -6,12 +6,12 @@ import csv
 import json
 
 import pytest
+from grpc_harness import serve
 
 from benchmarks.toy_sequence import write_orbit_sequence
 from estimators.gt_oracle import GtOracleEstimator
 from estimators.registry import EstimatorRegistry
 from flextrack.cli import main
-from grpc_harness import serve
 from loadtest import runner, workload
 from service.admission import AdmissionInterceptor
 from service.metrics import ServiceMetrics

@@ -152,3 +152,32 @@ def test_token_file_and_certificate_errors_are_clear(tmp_path):
         client_credentials.tls_credentials(client_cert=tmp_path / "cert.pem")
     with pytest.raises(ValueError, match="bearer token"):
         client_credentials.token_metadata("two words")
+
+
+def test_serve_flags_are_checked_before_serving(tmp_path, pki):
+    import argparse
+
+    from service import hardening
+
+    parser = argparse.ArgumentParser()
+    hardening.add_arguments(parser)
+
+    def build(*flags):
+        return hardening.Hardening.from_args(parser.parse_args(list(flags)))
+
+    plain = build()
+    assert plain.credentials() is None and [type(i).__name__ for i in plain.interceptors()] == ["AdmissionInterceptor"]
+    (tmp_path / "tokens").write_text(f"{TOKEN}\n")
+    secured = build("--tls-cert", str(pki["cert"]), "--tls-key", str(pki["key"]), "--client-ca", str(pki["ca"]),
+                    "--token-file", str(tmp_path / "tokens"), "--max-queue", "4", "--max-streams", "9")
+    assert secured.credentials() is not None
+    assert [type(i).__name__ for i in secured.interceptors()] == ["BearerTokenInterceptor", "AdmissionInterceptor"]
+    assert (secured.admission.max_queue, secured.admission.max_streams) == (4, 9)
+    for flags, message in ((["--tls-cert", str(pki["cert"])], "both --tls-cert and --tls-key"),
+                           (["--client-ca", str(pki["ca"])], "needs --tls-cert"),
+                           (["--tls-cert", str(tmp_path / "no.pem"), "--tls-key", str(pki["key"])], "cannot read"),
+                           (["--token-file", str(tmp_path / "none")], "cannot read the token file"),
+                           (["--max-queue", "-1"], "max_queue"), (["--max-batch", "0"], "max-batch")):
+        with pytest.raises(ValueError, match=message):
+            build(*flags)
+    assert build("--max-batch", "4").workers(2) == 8 and plain.workers(3) == 3

@@ -1,5 +1,6 @@
 """EuRoC V1_02 as a sequence folder: real IMU kept, virtual object seen, IMU consistent with Vicon."""
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +10,9 @@ from datasets import euroc
 from datasets.sequence import load
 from flextrack.cli import main as flextrack_main
 from flextrack.geometry import se3, so3
+from simulator.default_object import DEFAULT_DIR
 from simulator.euroc_convert import convert_euroc, visibility
+from simulator.render import load_model
 from simulator.integrate import integrate
 
 EUROC = Path(__file__).resolve().parents[2] / "shared" / "data" / "euroc_v1_02_medium"
@@ -29,7 +32,33 @@ def test_real_imu_and_calibration_are_kept(converted):
     assert seq.T_BC[0, 3] == pytest.approx(-0.0216401454975)
     assert seq.imu_noise.gyroscope_noise_density == pytest.approx(1.6968e-4)
     assert np.allclose(np.diff(seq.frame_times_ns), 50_000_000)
-    assert seq.frame_times_ns[0] - seq.imu.t_ns[0] >= 1_000_000_000
+
+
+def test_frames_start_inside_the_still_start_with_backfilled_ground_truth(converted):
+    seq = load(converted)
+    lead = seq.frame_times_ns[0] - seq.imu.t_ns[0]
+    assert 500_000_000 <= lead < 700_000_000  # 0.5 s still IMU before the first frame, the MAV still
+    window = (seq.imu.t_ns > seq.frame_times_ns[0] - 500_000_000) & (seq.imu.t_ns <= seq.frame_times_ns[0])
+    assert np.abs(seq.imu.gyro[window] - seq.imu.gyro[window].mean(axis=0)).max() < 0.02
+    # frames before the Vicon record starts have poses (IMU integrated back from its first state),
+    # continuous with the recorded ones and still where the MAV is still
+    early = seq.frame_times_ns < seq.groundtruth.t_ns[0]
+    assert early.sum() >= 8 and all(int(i) in seq.gt_T_CO for i in seq.frame_ids)
+    first_recorded = int(np.argmax(~early))
+    steps = [np.linalg.norm(seq.gt_T_CO[i + 1][:3, 3] - seq.gt_T_CO[i][:3, 3]) for i in range(first_recorded + 2)]
+    assert max(steps) < 0.02  # m per 50 ms frame: no jump where the backfill meets Vicon
+    assert steps[0] < 1e-3
+
+
+def test_scaled_object_is_written_and_small_objects_are_refused(converted, tmp_path):
+    seq = load(converted)
+    info = json.loads((converted / "models" / "models_info.json").read_text())
+    default_info = json.loads((DEFAULT_DIR / "models_info.json").read_text())
+    assert next(iter(info.values()))["diameter"] == pytest.approx(4 * next(iter(default_info.values()))["diameter"],
+                                                                     rel=1e-3)
+    assert seq.meta["converter"]["object_scale"] == 4.0
+    with pytest.raises(ValueError, match="object scale of at least"):
+        convert_euroc(EUROC, tmp_path / "small", object_scale=1.0)
 
 
 def test_object_placed_where_cam0_sees_it(converted):
@@ -37,8 +66,11 @@ def test_object_placed_where_cam0_sees_it(converted):
     _, T_CO = seq.gt_times_and_poses()
     T_WC = seq.T_WO[None] @ np.linalg.inv(T_CO)
     centre = seq.meta["placement"]["centre_W"]
-    seen = visibility(np.array([centre]), T_WC, seq.camera, radius_m=0.075)[0]
-    assert seen.mean() > 0.25  # the drone looks all around the room; this is the best single spot
+    vertices = np.asarray(load_model(seq.model_path).vertices)
+    radius = float(np.linalg.norm(vertices - (vertices.min(axis=0) + vertices.max(axis=0)) / 2, axis=1).max())
+    reach = seq.meta["converter"]["placement_distance_m"]
+    seen = visibility(np.array([centre]), T_WC, seq.camera, radius, reach)[0]
+    assert seen.mean() > 0.2  # the drone looks all around the room; this is the best single spot
     assert seen.mean() == pytest.approx(seq.meta["placement"]["visible_fraction"], abs=0.01)
     # scene_gt is the Vicon pose at the frame time, moved to cam0 by T_BC
     gt = seq.groundtruth

@@ -54,7 +54,7 @@ def test_table3_statistics(motion, level):
 
 
 @pytest.mark.parametrize("motion,level", PROGRAMS)
-def test_object_stays_in_view_at_about_1_2_m(motion, level):
+def test_object_stays_in_view_from_1_2_m_then_closer(motion, level):
     cam = PinholeCamera.linemod()
     prog = MotionProgram(motion, level, seed=5, target_W=np.array([0.0, 0.0, 0.05]))
     k = prog.camera(np.arange(0.0, prog.end_s, 0.05))
@@ -65,7 +65,17 @@ def test_object_stays_in_view_at_about_1_2_m(motion, level):
     assert (uv[:, 0] > margin).all() and (uv[:, 0] < cam.width - margin).all()
     assert (uv[:, 1] > margin).all() and (uv[:, 1] < cam.height - margin).all()
     distance = np.linalg.norm(target_C, axis=1)
-    assert abs(distance[0] - 1.2) < 1e-9 and distance.min() > 0.8 and distance.max() < 1.6
+    # starts 1.2 m away (the paper's initial distance), works closer once moving (PIA's area limit)
+    assert abs(distance[0] - 1.2) < 1e-9 and distance.min() > 0.7 and distance.max() < 1.2 + 1e-9
+    working = distance[np.arange(0.0, prog.end_s, 0.05) >= prog.still_s + prog.ramp_s]
+    assert abs(np.median(working) - 0.95) < 0.05 and working.max() < 1.2
+
+
+def test_short_program_reports_statistics_over_what_there_is():
+    stats = MotionProgram("circular", "medium", duration_s=1.0).statistics(200.0)
+    for part in ("scripted", "with_shake"):
+        values = [v for x in stats[part].values() for v in np.atleast_1d(x)]
+        assert np.all(np.isfinite(values))
 
 
 def test_seeds_change_the_shake_not_the_script():

@@ -39,6 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--width", type=int, default=32, help="network channel width")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--resume", action="store_true", help="continue from the run folder's checkpoint")
+    p.add_argument("--init", type=Path, help="start from this checkpoint's network weights (same width and keypoint count)")
 
     e = sub.add_parser("pvnet-eval", help="evaluate an ONNX model on rendered frames never seen in training",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -62,7 +63,7 @@ def _train(args) -> int:
     cfg = TrainConfig(steps=args.steps, batch=args.batch, size=args.size, seed=args.seed, views=args.views,
                       minutes=args.minutes, width=args.width, threads=args.threads)
     t0 = time.time()
-    ckpt = train(obj, args.out, cfg, resume=args.resume, tqdm=tqdm)
+    ckpt = train(obj, args.out, cfg, resume=args.resume, tqdm=tqdm, init=args.init)
     log = json.loads((args.out / "log.json").read_text())
     plot_loss(log["history"], args.out / "loss.png")
     onnx_path = args.out / "pvnet.onnx"

@@ -46,35 +46,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 # ---- frames -----------------------------------------------------------------------------------
 
-def look_at_pose(rng: np.random.Generator, camera, target_W: np.ndarray, dist_range=(0.45, 1.5),
-                 elevation_deg=(15.0, 75.0), margin_px: float = 60.0) -> np.ndarray:
-    """T_WC of a camera above the table at a random distance, the target anywhere in its view."""
-    from flextrack.geometry import se3, so3
-
-    d = rng.uniform(*dist_range)
-    el, az = np.radians(rng.uniform(*elevation_deg)), rng.uniform(0, 2 * np.pi)
-    position = target_W + d * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    z = (target_W - position) / d  # camera looks at the target ...
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    R0 = np.stack([x, np.cross(z, x), z], axis=1)  # x right, y down (world z is up)
-    u = rng.uniform(margin_px, camera.width - margin_px)
-    v = rng.uniform(margin_px, camera.height - margin_px)
-    ray = np.array([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, 1.0])
-    ray /= np.linalg.norm(ray)
-    axis = np.cross([0.0, 0.0, 1.0], ray)  # ... then turns so that the target lands at pixel (u, v)
-    angle = np.arccos(np.clip(ray[2], -1, 1))
-    R_align = so3.exp(axis / (np.linalg.norm(axis) + 1e-12) * angle)
-    roll = so3.exp(ray * np.radians(rng.uniform(-15, 15)))
-    return se3.make(R0 @ R_align.T @ roll.T, position)
-
-
 def rendered_frames(model_path: Path, n: int, seed: int, scenes: int):
     """Yields (name, rgb, camera, T_CO, group) for n frames in the simulator's room."""
     from flextrack.geometry import se3
     from flextrack.geometry.camera import PinholeCamera
     from simulator.render import Renderer, load_model
     from simulator.scene import make_scene
+    from training.pvnet_data import look_at_pose
 
     camera = PinholeCamera.linemod()
     vertices = np.asarray(load_model(model_path).vertices)

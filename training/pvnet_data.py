@@ -40,20 +40,35 @@ def output_grid_to_full(ij_rows: np.ndarray, ij_cols: np.ndarray) -> np.ndarray:
     return np.stack([OUT_SCALE * ij_cols + 1.5, OUT_SCALE * ij_rows + 1.5], axis=1).astype(float)
 
 
-def random_rotation(rng: np.random.Generator) -> np.ndarray:
-    """Uniform over SO(3) (normalised Gaussian quaternion)."""
-    q = rng.normal(size=4)
-    return so3.matrix_from_quat(q / np.linalg.norm(q))
-
-
-def random_pose(rng: np.random.Generator, camera: PinholeCamera, dist_range: tuple[float, float],
-                margin_px: float = 40.0) -> np.ndarray:
-    """T_CO with uniform rotation, depth uniform in dist_range, centre anywhere in the image (with margin)."""
-    z = rng.uniform(*dist_range)
+def look_at_pose(rng: np.random.Generator, camera: PinholeCamera, target: np.ndarray,
+                 dist_range: tuple[float, float] = (0.45, 1.5), elevation_deg: tuple[float, float] = (15.0, 75.0),
+                 roll_deg: float = 15.0, margin_px: float = 60.0) -> np.ndarray:
+    """T_WC of a camera above the z = 0 plane (z up) looking at `target` from a random azimuth,
+    elevation and distance, turned so that the target lands anywhere in the image, with some roll."""
+    d = rng.uniform(*dist_range)
+    el, az = np.radians(rng.uniform(*elevation_deg)), rng.uniform(0, 2 * np.pi)
+    position = target + d * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    z = (target - position) / d  # camera looks at the target ...
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    R0 = np.stack([x, np.cross(z, x), z], axis=1)  # x right, y down (world z is up)
     u = rng.uniform(margin_px, camera.width - margin_px)
     v = rng.uniform(margin_px, camera.height - margin_px)
-    t = z * np.array([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, 1.0])
-    return se3.make(random_rotation(rng), t)
+    ray = np.array([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, 1.0])
+    ray /= np.linalg.norm(ray)
+    axis = np.cross([0.0, 0.0, 1.0], ray)  # ... then turns so that the target lands at pixel (u, v)
+    angle = np.arccos(np.clip(ray[2], -1, 1))
+    R_align = so3.exp(axis / (np.linalg.norm(axis) + 1e-12) * angle)
+    roll = so3.exp(ray * np.radians(rng.uniform(-roll_deg, roll_deg)))
+    return se3.make(R0 @ R_align.T @ roll.T, position)
+
+
+def random_pose(rng: np.random.Generator, camera: PinholeCamera, centre_O: np.ndarray,
+                dist_range: tuple[float, float], elevation_deg: tuple[float, float] = (-5.0, 88.0)) -> np.ndarray:
+    """T_CO seen from the object's upper hemisphere (its z axis up, as it stands on a table; BOP
+    models are so aligned), the object anywhere in view, with up to 25 degrees of camera roll."""
+    T_OC = look_at_pose(rng, camera, centre_O, dist_range, elevation_deg, roll_deg=25.0, margin_px=40.0)
+    return se3.inverse(T_OC)
 
 
 @dataclass
@@ -96,12 +111,14 @@ def render_views(model_path: str | Path, keypoints_O: np.ndarray, diameter_m: fl
     from simulator.render import Renderer
 
     renderer = Renderer(camera, model_path)
+    vertices = np.asarray(renderer.mesh.vertices)
+    centre_O = (vertices.min(axis=0) + vertices.max(axis=0)) / 2
     rgba_all = np.zeros((n, size, size, 4), np.uint8)
     kps_all = np.zeros((n, len(keypoints_O), 2), np.float32)
     poses = np.zeros((n, 4, 4))
     try:
         for i in range(n):
-            T_CO = random_pose(rng, camera, dist_range)
+            T_CO = random_pose(rng, camera, centre_O, dist_range)
             light_dir, intensity, ambient = random_light(rng)
             frame = renderer.render(T_CO, light_dir_C=light_dir, light_intensity=intensity, ambient=ambient)
             rgba = np.dstack([frame.rgb, np.where(frame.mask, 255, 0).astype(np.uint8)])
@@ -204,9 +221,17 @@ def jitter_colour(rng: np.random.Generator, rgb: np.ndarray) -> np.ndarray:
 class PatchSampler:
     """Random training patches (images, masks, keypoints) from object-only crops."""
 
-    def __init__(self, views: RenderedViews, size: int = 128, seed: int = 0, textures=()):
+    def __init__(self, views: RenderedViews, size: int = 128, seed: int = 0, textures=(),
+                 normalised_share: float = 0.7, normalised_px: tuple[float, float] = (44.0, 84.0)):
         self.views = views
         self.textures = list(textures)
+        # Most patches show the object at the size the estimator's crop pass gives it (its box side
+        # about normalised_px); the rest at the size the distance gives (the whole-frame pass).
+        self.normalised_share, self.normalised_px = normalised_share, normalised_px
+        alpha = views.rgba[..., 3] > 0
+        rows, cols = alpha.any(axis=2), alpha.any(axis=1)
+        extent = lambda m: np.where(m.any(1), m.shape[1] - np.argmax(m[:, ::-1], 1) - np.argmax(m, 1), 1)  # noqa: E731
+        self.box_side = np.maximum(extent(rows), extent(cols)).astype(float)
         self.size = size
         self.rng = np.random.default_rng(seed)
 
@@ -217,8 +242,11 @@ class PatchSampler:
         crop = self.views.rgba[i]
         kp = self.views.keypoints[i].astype(np.float64)
         # object: scale, in-plane rotation, and a position that may cut it at the patch border
-        scale = np.exp(rng.uniform(np.log(0.7), np.log(1.35)))
-        angle = rng.uniform(-30, 30)
+        if rng.random() < self.normalised_share:
+            scale = np.exp(rng.uniform(*np.log(self.normalised_px))) / self.box_side[i]
+        else:
+            scale = np.exp(rng.uniform(np.log(0.7), np.log(1.35)))
+        angle = rng.uniform(-15, 15)
         centre = rng.uniform(-0.1 * s, 1.1 * s, size=2) if rng.random() < 0.3 else rng.uniform(0.2 * s, 0.8 * s, 2)
         M = cv2.getRotationMatrix2D((float(kp[-1, 0]), float(kp[-1, 1])), angle, scale)
         M[:, 2] += centre - kp[-1]

@@ -51,8 +51,12 @@ def lr_at(progress: float, base: float) -> float:
     return base * warm * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(progress, 1.0))))
 
 
-def train(obj: ObjectModel, out_dir: Path, cfg: TrainConfig, resume: bool = False, tqdm=None) -> Path:
-    """Trains and returns the checkpoint path; out_dir receives views.npz, checkpoint.pt, log.json."""
+def train(obj: ObjectModel, out_dir: Path, cfg: TrainConfig, resume: bool = False, tqdm=None,
+          init: Path | None = None) -> Path:
+    """Trains and returns the checkpoint path; out_dir receives views.npz, checkpoint.pt, log.json.
+
+    `init`: a checkpoint whose network weights start a new run (fine-tuning; ignored on resume).
+    """
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -81,6 +85,9 @@ def train(obj: ObjectModel, out_dir: Path, cfg: TrainConfig, resume: bool = Fals
         opt.load_state_dict(ck["optimizer"])
         sampler.rng.bit_generator.state = ck["sampler_rng"]
         state = ck["state"]
+    elif init is not None:
+        net.load_state_dict(torch.load(init, weights_only=False, map_location="cpu")["model"])
+        state["init"] = str(init)
 
     def save():
         torch.save({"model": net.state_dict(), "optimizer": opt.state_dict(), "sampler_rng": sampler.rng.bit_generator.state,
