@@ -65,7 +65,8 @@ def run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         model = args.model
         if args.untrained:
-            model = _untrained_model(Path(tmp) / "pvnet_untrained.onnx", load_object("default", DEFAULT_OBJECT).keypoints)
+            keypoints = load_object("default", DEFAULT_OBJECT).keypoints
+            model = _untrained_model(Path(tmp) / "pvnet_untrained.onnx", keypoints)
         elif not model.is_file():
             print(f"bench batching: model {model} not found (train one with `flextrack train pvnet`, or --untrained)")
             return 2

@@ -48,10 +48,6 @@ class TrackerOptions:
     velocity_gain: float = 0.1
     """Fraction of the velocity error at the mid-time removed per correction (1.0 = the paper; a 3 mm
     noisy backend makes V_avg noisy by ~70 mm/s, hence the smaller default)."""
-    innovation_velocity_gain: float = 0.0
-    """0: the velocity comes from BSCM's V_avg (the paper). > 0: an alpha-beta filter instead (not in
-    the paper): v += this gain * (backend position - propagated position) / time since the last
-    pose, with `pose_gain` as alpha; for a steady-state optimum beta = 2 (2 - alpha) - 4 sqrt(1 - alpha)."""
     max_gyro_bias: float = 0.1
     """Clamp on the norm of the gyro bias estimate, rad/s."""
     max_accel_bias: float = 1.0
@@ -114,14 +110,13 @@ class TrackerOptions:
 
 def preset(name: str) -> TrackerOptions:
     """Named option sets. "paper": the paper's PRM (each backend pose resets the state; BSCM with the
-    damped default gains). "ours": the backend pose blended in half way and the velocity from an
-    alpha-beta filter on the position innovation (alpha = pose_gain = 0.5, beta from Kalata's
-    steady-state relation 2 (2 - alpha) - 4 sqrt(1 - alpha) = 0.17), the gyro bias corrected more
-    slowly: it averages a noisy backend's error instead of resetting to it (docs/tracker.md)."""
+    damped default gains). "ours": the backend pose blended in half way (`pose_gain` 0.5: a fixed-gain
+    complementary filter that averages a noisy backend over ~3 responses instead of resetting to
+    it) and the biases averaged over ~5-10 s (gains 0.005 gyro, 0.01 accel at ~20 responses/s): IMU
+    biases drift over minutes, while one noisy response's rotation drift / dt is noisy by ~0.1 rad/s
+    and V_bias / dt by ~1.7 m/s^2. docs/tracker.md has the sweep."""
     if name == "paper":
         return TrackerOptions()
     if name == "ours":
-        alpha = 0.5
-        return TrackerOptions(pose_gain=alpha, innovation_velocity_gain=round(2 * (2 - alpha) - 4 * math.sqrt(1 - alpha), 2),
-                              gyro_bias_gain=0.02)
+        return TrackerOptions(pose_gain=0.5, gyro_bias_gain=0.005, accel_bias_gain=0.01)
     raise ValueError(f"unknown tracker preset {name!r}: 'paper' or 'ours'")

@@ -339,8 +339,6 @@ class Tracker:
                     self.last_bscm = res
                     if res.accepted:
                         self._c, v, self._velocity_known = res.c, res.v, True
-                        if o.innovation_velocity_gain > 0 and gains[2] < 1.0:
-                            v = self._innovation_velocity(x_imu, u, t0)
                     else:  # backend and IMU disagree beyond belief: reset the PRM, keep the pose
                         reset = True
                         detail = "backend pose disagrees with the IMU: BSCM skipped, PRM reset"
@@ -354,15 +352,6 @@ class Tracker:
             self._corrected = True
         propagate(self._step, self._anchor_x, self._c, t0, buf.samples, buf.states, buf.index_at_or_before(t0) + 1)
         return self._outcome(outcome, detail)
-
-    def _innovation_velocity(self, x_imu: tuple, u: tuple, t0: int) -> tuple:
-        """The velocity at t0 of an alpha-beta filter: the propagated one plus `innovation_velocity_gain`
-        times the position innovation (backend minus propagated, the backend's translation put into O
-        with the propagated orientation) over the time since the pose was last set."""
-        dt = (t0 - self._anchor_t) * 1e-9
-        p_meas = _rot(x_imu, u)
-        k = self.options.innovation_velocity_gain / max(dt, 1e-3)
-        return tuple(x_imu[12 + i] + k * (p_meas[i] - x_imu[9 + i]) for i in range(3))
 
     def _body_pose(self, m: list[float]) -> tuple[tuple, tuple, tuple]:
         """(R_OB, p_OB, u) as float tuples of T_OB = T_CO^-1 T_CB, T_CO given as 16 row-major floats;

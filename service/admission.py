@@ -125,10 +125,7 @@ class AdmissionInterceptor(grpc.aio.ServerInterceptor):
                 self._observe("Track", "-", REJECTED_CODE, None)
                 await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED,
                                     f"server is at capacity ({self.max_streams} streams); retry with backoff")
-            # Admitted: say so at once with the initial metadata, so that a client can wait for this answer
-            # before it sends a 100 kB frame into a stream that might be refused.
-            await context.send_initial_metadata(())
-            self.streams += 1
+            self.streams += 1  # counted before the first await, so that two new streams cannot both slip in
             if self.metrics:
                 self.metrics.set_streams(self.streams)
             # The servicer answers each request of the stream once, in order: feed it only the admitted
@@ -141,6 +138,9 @@ class AdmissionInterceptor(grpc.aio.ServerInterceptor):
 
             answers = behaviour(admitted_requests(), context).__aiter__()
             try:
+                # Admitted: say so at once with the initial metadata, so that a client can wait for this answer
+                # before it sends a 100 kB frame into a stream that might be refused.
+                await context.send_initial_metadata(())
                 async for raw in raw_iterator:
                     try:
                         request = parse(raw)

@@ -14,9 +14,9 @@ Frames are at cam0's 20 Hz or any rate asked, from `IMU_LEAD_S` after the IMU's 
 MAV recordings begin with ~0.7 s of stillness, and the tracker initialises gravity and gyro bias
 from the 0.5 s of still IMU before its first frame (the paper's "System Initialization"). The
 Vicon ground truth of V1_02 starts ~1 s after the IMU, when the MAV already moves; the poses of
-the frames before it are the first ground-truth state integrated backwards with the IMU, using the
-ground truth's own velocity and biases (`_backfill`; over < 0.5 s the IMU noise moves them by far
-less than a millimetre). Camera poses are the body poses interpolated at the frame times and moved
+the frames before it come from the first ground-truth state: orientation integrated backwards
+through the gyro, position extrapolated at the recorded velocity (`_backfill`; the MAV moves at
+~1 cm/s then, so < 5 mm over the ~0.45 s). Camera poses are the body poses interpolated at the frame times and moved
 to cam0 by T_BC.
 """
 
@@ -39,7 +39,6 @@ MIN_DISTANCE_M, MAX_DISTANCE_M = 0.6, 3.0
 IMU_LEAD_S = 0.55  # the first frame comes this long after the IMU starts: 0.5 s still window + margin
 OBJECT_SCALE = 4.0  # default: the 15 cm default object becomes a 58 cm box, which PIA accepts to ~2.2 m in cam0
 AREA_MARGIN = 1.3  # placement counts a frame as seen when the object's image box is >= 1.3 x THR_area
-GRAVITY_W = np.array([0.0, 0.0, -9.81])  # EuRoC's Vicon world: z up
 
 
 @dataclass
@@ -179,26 +178,25 @@ def install_scaled_model(source: Path, root: Path, bop_obj_id: int, scale: float
 
 def _backfill(gt: euroc.GroundTruth, imu: euroc.ImuData, t_from_ns: int) -> tuple[np.ndarray, np.ndarray]:
     """Ground-truth times and T_WB from `t_from_ns`: the recorded ones, preceded (when the IMU starts
-    before the ground truth) by the first recorded state integrated backwards through the IMU with
-    the ground truth's velocity and biases, at the IMU's sample times."""
+    before the ground truth) by poses at the IMU's sample times back from the first recorded state:
+    the orientation integrated backwards through the gyro (less the ground truth's gyro bias), the
+    position extrapolated at the first recorded velocity. Not the accelerometer: in EuRoC's first
+    second the rotors spin up, and double-integrating their vibration drifts ~5 cm in 0.5 s while
+    the MAV moves at ~1 cm/s."""
     poses = np.stack([se3.from_quat_translation(q, p) for q, p in zip(gt.q_WB, gt.p_WB)])
     times = np.asarray(gt.t_ns, dtype=np.int64)
     back = np.flatnonzero((imu.t_ns >= t_from_ns) & (imu.t_ns < times[0]))
     if not len(back):
         return times, poses
-    R, p, v = poses[0][:3, :3].copy(), poses[0][:3, 3].copy(), np.asarray(gt.v_WB[0], float).copy()
-    b_g, b_a = np.asarray(gt.bias_gyro[0], float), np.asarray(gt.bias_accel[0], float)
+    R, p0, v0 = poses[0][:3, :3].copy(), poses[0][:3, 3], np.asarray(gt.v_WB[0], float)
+    b_g = np.asarray(gt.bias_gyro[0], float)
     t = int(times[0])
     out_t, out_T = [], []
     for i in back[::-1]:  # newest first, stepping back from the first ground-truth state
-        dt = (t - int(imu.t_ns[i])) * 1e-9
-        a_W = R @ (imu.accel[i] - b_a) + GRAVITY_W
-        p = p - dt * v + 0.5 * dt * dt * a_W
-        v = v - dt * a_W
-        R = R @ so3.exp(-(imu.gyro[i] - b_g) * dt)
+        R = R @ so3.exp(-(imu.gyro[i] - b_g) * (t - int(imu.t_ns[i])) * 1e-9)
         t = int(imu.t_ns[i])
         out_t.append(t)
-        out_T.append(se3.make(R, p))
+        out_T.append(se3.make(R, p0 - v0 * (int(times[0]) - t) * 1e-9))
     return np.concatenate([np.array(out_t[::-1], dtype=np.int64), times]), np.concatenate([np.stack(out_T[::-1]), poses])
 
 

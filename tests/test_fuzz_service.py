@@ -91,7 +91,7 @@ def test_track_answers_every_frame_in_order_with_a_defined_status(server):
     channel, seq = server
     stub = pb_grpc.PoseEstimationStub(channel)
 
-    @_fuzz_settings(120)
+    @_fuzz_settings(200)
     @given(st.lists(requests(seq), min_size=1, max_size=25))
     def check(batch):
         answers = list(stub.Track(iter(batch), timeout=30, metadata=METADATA))

@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-kubernetes_validate = pytest.importorskip("kubernetes_validate", reason="kubernetes-validate (dev extra) is not installed")
+kubernetes_validate = pytest.importorskip("kubernetes_validate",
+                                          reason="kubernetes-validate (dev extra) is not installed")
 
 K8S = Path(__file__).resolve().parents[1] / "deploy" / "k8s"
 VERSION = "1.30.0"  # the oldest release we claim: gRPC probes are GA since 1.27, autoscaling/v2 since 1.23
