@@ -1,9 +1,10 @@
 """The `pvnet` estimator: a PVNet-style network (onnxruntime), RANSAC keypoint voting, then PnP.
 
 Per frame: the image is halved (area averaging) and the network predicts the object mask and, per
-pixel, unit vectors towards the object's keypoints. The largest mask component locates the object;
-a second pass on a crop scaled so that the object is about `zoom_object_px` wide (the sizes it was
-trained on, and more pixels on small far objects) gives the field that is voted on. The 2D
+pixel, unit vectors towards the object's keypoints. The largest mask component locates the object
+(objects that look small there are looked for again at full resolution); a second pass on a crop
+scaled so that the object's box is about `zoom_object_px` wide (the sizes it was mostly trained
+on, and more pixels on small far objects) gives the field that is voted on. The 2D
 keypoints then go through the `pnp` estimator, the one PnP solver of the project.
 
 The network is tied to one object: its ONNX metadata holds the 3D keypoints it was trained for,
@@ -52,7 +53,8 @@ class PvnetEstimator(Estimator):
 
     def __init__(self, objects: ObjectRegistry, model_path: str | Path, name: str = "pvnet", object_ids=(),
                  min_mask_px: int = 12, zoom: bool = True, zoom_size: int = 128, zoom_object_px: float = 64.0,
-                 hypotheses: int = 64, cos_threshold: float = 0.99, ransac_px: float = 4.0, seed: int = 0,
+                 full_resolution_search: bool = True, near_box_px: float = 50.0,
+                 hypotheses: int = 64, cos_threshold: float = 0.99, ransac_px: float = 8.0, seed: int = 0,
                  device: str = "auto", threads: int = 0):
         import onnxruntime as ort
 
@@ -79,13 +81,15 @@ class PvnetEstimator(Estimator):
         self.num_keypoints = len(object_kp)
         self.min_mask_px = int(min_mask_px)
         self.zoom, self.zoom_size, self.zoom_object_px = bool(zoom), int(zoom_size), float(zoom_object_px)
+        self.full_resolution_search, self.near_box_px = bool(full_resolution_search), float(near_box_px)
         self.voting = VotingConfig(hypotheses=int(hypotheses), cos_threshold=float(cos_threshold))
         self.seed = int(seed)
         self._pnp = PnpEstimator(objects, name=f"{name}.pnp", object_ids=ids, ransac_px=ransac_px)
 
     @classmethod
-    def from_spec(cls, spec) -> "PvnetEstimator":
-        spec.check_params({"min_mask_px", "zoom", "zoom_size", "zoom_object_px", "hypotheses", "cos_threshold",
+    def from_spec(cls, spec) -> PvnetEstimator:
+        spec.check_params({"min_mask_px", "zoom", "zoom_size", "zoom_object_px", "full_resolution_search",
+                           "near_box_px", "hypotheses", "cos_threshold",
                            "ransac_px", "seed", "device", "threads"})
         if spec.model is None:
             raise ValueError(f"estimator '{spec.name}' (kind pvnet) needs `model = \"path/to/pvnet.onnx\"`")
@@ -157,37 +161,45 @@ class PvnetEstimator(Estimator):
                 results[i] = out
         return results
 
+    def _locate(self, outs: np.ndarray, factor: int) -> list:
+        """Per output: None, or (pixels (N, 2) in frame px, vectors (N, K, 2), box in frame px)."""
+        stride = factor * OUTPUT_STRIDE  # frame px per output cell
+        shift = (stride - 1) / 2  # centre of an output cell, frame px
+        found = []
+        for out in outs:
+            mask = _largest_component(out[0] > 0)
+            if mask.sum() < self.min_mask_px:
+                found.append(None)
+                continue
+            rows, cols, vec = self._field(out, mask)
+            box = (stride * cols.min(), stride * rows.min(), stride * (cols.max() + 1), stride * (rows.max() + 1))
+            found.append((np.stack([stride * cols + shift, stride * rows + shift], axis=1).astype(float), vec, box))
+        return found
+
     def _estimate_same_size(self, inputs, images) -> list[EstimateOutput]:
         n = len(images)
         h, w = images[0].shape[:2]
         t0 = time.perf_counter()
+        # Whole-frame search: the halved frame finds near objects; objects that look small there
+        # (box side under `near_box_px` of the halved frame) are looked for at full resolution.
         halves = [cv2.resize(im, (w // INPUT_SCALE, h // INPUT_SCALE), interpolation=cv2.INTER_AREA) for im in images]
-        coarse = self._run(halves)
-        stride = INPUT_SCALE * OUTPUT_STRIDE  # frame px per output cell
-        fields = []  # per frame: None (not found) or (pixels (N, 2) in frame px, vectors (N, K, 2), mask area)
-        boxes = []
-        for out in coarse:
-            mask = _largest_component(out[0] > 0)
-            area = int(mask.sum())
-            if area < self.min_mask_px:
-                fields.append(None)
-                boxes.append(None)
-                continue
-            rows, cols, vec = self._field(out, mask)
-            fields.append((np.stack([stride * cols + 1.5, stride * rows + 1.5], axis=1).astype(float), vec, area))
-            boxes.append((stride * cols.min(), stride * rows.min(), stride * cols.max() + stride,
-                          stride * rows.max() + stride))
-        found = [i for i in range(n) if boxes[i] is not None]
-        if self.zoom and found:
-            crops = [self._zoom_crop(images[i], halves[i], boxes[i]) for i in found]
-            fine = self._run([c[0] for c in crops])
-            for i, out, (_, scale, off) in zip(found, fine, crops):
+        found = self._locate(self._run(halves), INPUT_SCALE)
+        small = [i for i, f in enumerate(found)
+                 if f is None or max(f[2][2] - f[2][0], f[2][3] - f[2][1]) < self.near_box_px * INPUT_SCALE]
+        if self.full_resolution_search and small:
+            for i, f in zip(small, self._locate(self._run([images[i] for i in small]), 1)):
+                found[i] = f or found[i]
+        fields = [None if f is None else (f[0], f[1]) for f in found]
+        located = [i for i in range(n) if found[i] is not None]
+        if self.zoom and located:
+            crops = [self._zoom_crop(images[i], halves[i], found[i][2]) for i in located]
+            for i, out, (_, scale, off) in zip(located, self._run([c[0] for c in crops]), crops):
                 mask = _largest_component(out[0] > 0)
                 if mask.sum() < self.min_mask_px:
-                    continue  # keep the coarse field
+                    continue  # keep the whole-frame field
                 rows, cols, vec = self._field(out, mask)
                 crop_pts = np.stack([OUTPUT_STRIDE * cols + 0.5, OUTPUT_STRIDE * rows + 0.5], axis=1)
-                fields[i] = ((crop_pts - off) / scale, vec, fields[i][2])
+                fields[i] = ((crop_pts - off) / scale, vec)
         inference_ms = (time.perf_counter() - t0) * 1e3 / n
 
         outputs = []

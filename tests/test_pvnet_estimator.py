@@ -9,14 +9,14 @@ import pytest
 pytest.importorskip("onnxruntime")
 torch = pytest.importorskip("torch")
 
-from estimators.base import EstimateInput, InvalidInput, Status  # noqa: E402
-from estimators.objects import ObjectRegistry, load_object  # noqa: E402
-from estimators.pvnet import PvnetEstimator  # noqa: E402
-from flextrack.geometry import metrics, se3  # noqa: E402
-from flextrack.geometry.camera import PinholeCamera  # noqa: E402
-from training.cli import DEFAULT_OBJECT  # noqa: E402
-from training.export_onnx import export  # noqa: E402
-from training.pvnet_model import PvnetNet  # noqa: E402
+from estimators.base import EstimateInput, InvalidInput, Status
+from estimators.objects import ObjectRegistry, load_object
+from estimators.pvnet import PvnetEstimator
+from flextrack.geometry import metrics, se3
+from flextrack.geometry.camera import PinholeCamera
+from training.cli import DEFAULT_OBJECT
+from training.export_onnx import export
+from training.pvnet_model import PvnetNet
 
 SHIPPED = Path(__file__).resolve().parents[1] / "models" / "pvnet_default" / "pvnet.onnx"
 CAMERA = PinholeCamera.linemod()

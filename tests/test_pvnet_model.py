@@ -6,8 +6,8 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("onnxruntime")
 
-from training.export_onnx import OPSET, export, max_difference  # noqa: E402
-from training.pvnet_model import PvnetNet  # noqa: E402
+from training.export_onnx import OPSET, export, max_difference
+from training.pvnet_model import PvnetNet
 
 
 @pytest.fixture(scope="module")
@@ -34,6 +34,6 @@ def test_onnx_export_agrees_with_torch_at_any_batch_and_size(net, tmp_path):
     model = onnx.load(str(path))
     assert model.opset_import[0].version == OPSET
     meta = {p.key: p.value for p in model.metadata_props}
-    assert np.allclose(np.array(eval(meta["keypoints_O"])), keypoints)  # noqa: S307 - a JSON list literal
+    assert np.allclose(np.array(eval(meta["keypoints_O"])), keypoints)
     for batch, h, w in [(1, 64, 64), (3, 96, 128)]:
         assert max_difference(net, path, batch, h, w) < 1e-3

@@ -8,11 +8,11 @@ import pytest
 pytest.importorskip("torch")
 pytest.importorskip("pyrender")
 
-from estimators.objects import load_object  # noqa: E402
-from flextrack.geometry import se3  # noqa: E402
-from flextrack.geometry.camera import PinholeCamera  # noqa: E402
-from training.cli import DEFAULT_OBJECT  # noqa: E402
-from training.pvnet_data import PatchSampler, full_to_input, render_views, targets  # noqa: E402
+from estimators.objects import load_object
+from flextrack.geometry import se3
+from flextrack.geometry.camera import PinholeCamera
+from training.cli import DEFAULT_OBJECT
+from training.pvnet_data import PatchSampler, full_to_input, render_views, targets
 
 
 @pytest.fixture(scope="module")

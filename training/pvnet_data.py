@@ -83,7 +83,7 @@ class RenderedViews:
         np.savez(path, rgba=self.rgba, keypoints=self.keypoints, poses=self.poses)
 
     @classmethod
-    def load(cls, path: str | Path) -> "RenderedViews":
+    def load(cls, path: str | Path) -> RenderedViews:
         with np.load(path) as data:
             return cls(data["rgba"], data["keypoints"], data["poses"])
 
@@ -230,7 +230,7 @@ class PatchSampler:
         self.normalised_share, self.normalised_px = normalised_share, normalised_px
         alpha = views.rgba[..., 3] > 0
         rows, cols = alpha.any(axis=2), alpha.any(axis=1)
-        extent = lambda m: np.where(m.any(1), m.shape[1] - np.argmax(m[:, ::-1], 1) - np.argmax(m, 1), 1)  # noqa: E731
+        extent = lambda m: np.where(m.any(1), m.shape[1] - np.argmax(m[:, ::-1], 1) - np.argmax(m, 1), 1)
         self.box_side = np.maximum(extent(rows), extent(cols)).astype(float)
         self.size = size
         self.rng = np.random.default_rng(seed)
@@ -270,7 +270,7 @@ class PatchSampler:
             img = cv2.GaussianBlur(img, (0, 0), rng.uniform(0.4, 1.3))
         img = np.clip(img + rng.normal(0, rng.uniform(0, 6), size=img.shape), 0, 255).astype(np.uint8)
         if rng.random() < 0.3:
-            ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(40, 95))])
+            _, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(40, 95))])
             img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
         return img, mask, kp.astype(np.float32)
 

@@ -96,7 +96,7 @@ def train(obj: ObjectModel, out_dir: Path, cfg: TrainConfig, resume: bool = Fals
         (out_dir / "log.json").write_text(json.dumps({"config": asdict(cfg), **state}))
 
     budget_s = cfg.minutes * 60.0
-    progress = lambda: max(state["step"] / cfg.steps, state["elapsed_s"] / budget_s)  # noqa: E731
+    progress = lambda: max(state["step"] / cfg.steps, state["elapsed_s"] / budget_s)
     bar = tqdm(total=cfg.steps, initial=state["step"], desc="train", mininterval=5) if tqdm else None
     net.train()
     last_save = time.monotonic()
@@ -143,7 +143,7 @@ def plot_loss(history: list, path: Path) -> None:
     fig, ax = plt.subplots(figsize=(7, 4))
     if len(h):
         k = max(1, len(h) // 50)
-        smooth = lambda y: np.convolve(y, np.ones(k) / k, mode="valid")  # noqa: E731
+        smooth = lambda y: np.convolve(y, np.ones(k) / k, mode="valid")
         ax.semilogy(h[:, 0], h[:, 2], alpha=0.25, color="C0")
         ax.semilogy(h[:, 0], h[:, 3], alpha=0.25, color="C1")
         ax.semilogy(h[k - 1:, 0], smooth(h[:, 2]), color="C0", label="mask BCE")
