@@ -38,11 +38,12 @@ def _providers(device: str) -> list[str]:
     return [p for p in wanted if p in available]
 
 
-def _largest_component(mask: np.ndarray) -> np.ndarray:
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    if count <= 1:
-        return np.zeros_like(mask, dtype=bool)
-    return labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+def _components(mask: np.ndarray, count: int, min_px: int) -> list[np.ndarray]:
+    """The `count` largest 8-connected components of a boolean mask with at least min_px pixels."""
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    order = np.argsort(-areas)[:count]
+    return [labels == 1 + int(k) for k in order if areas[k] >= min_px]
 
 
 class PvnetEstimator(Estimator):
@@ -53,7 +54,7 @@ class PvnetEstimator(Estimator):
 
     def __init__(self, objects: ObjectRegistry, model_path: str | Path, name: str = "pvnet", object_ids=(),
                  min_mask_px: int = 12, zoom: bool = True, zoom_size: int = 128, zoom_object_px: float = 64.0,
-                 full_resolution_search: bool = True, near_box_px: float = 50.0,
+                 full_resolution_search: bool = True, near_box_px: float = 50.0, candidates: int = 3,
                  hypotheses: int = 64, cos_threshold: float = 0.99, ransac_px: float = 8.0, seed: int = 0,
                  device: str = "auto", threads: int = 0):
         import onnxruntime as ort
@@ -82,6 +83,7 @@ class PvnetEstimator(Estimator):
         self.min_mask_px = int(min_mask_px)
         self.zoom, self.zoom_size, self.zoom_object_px = bool(zoom), int(zoom_size), float(zoom_object_px)
         self.full_resolution_search, self.near_box_px = bool(full_resolution_search), float(near_box_px)
+        self.candidates = int(candidates)
         self.voting = VotingConfig(hypotheses=int(hypotheses), cos_threshold=float(cos_threshold))
         self.seed = int(seed)
         self._pnp = PnpEstimator(objects, name=f"{name}.pnp", object_ids=ids, ransac_px=ransac_px)
@@ -89,7 +91,7 @@ class PvnetEstimator(Estimator):
     @classmethod
     def from_spec(cls, spec) -> PvnetEstimator:
         spec.check_params({"min_mask_px", "zoom", "zoom_size", "zoom_object_px", "full_resolution_search",
-                           "near_box_px", "hypotheses", "cos_threshold",
+                           "near_box_px", "candidates", "hypotheses", "cos_threshold",
                            "ransac_px", "seed", "device", "threads"})
         if spec.model is None:
             raise ValueError(f"estimator '{spec.name}' (kind pvnet) needs `model = \"path/to/pvnet.onnx\"`")
@@ -161,62 +163,68 @@ class PvnetEstimator(Estimator):
                 results[i] = out
         return results
 
-    def _locate(self, outs: np.ndarray, factor: int) -> list:
-        """Per output: None, or (pixels (N, 2) in frame px, vectors (N, K, 2), box in frame px)."""
+    def _locate(self, outs: np.ndarray, factor: int) -> list[list]:
+        """Per output, the candidate objects, largest first: (pixels (N, 2) and box in frame px, vectors (N, K, 2))."""
         stride = factor * OUTPUT_STRIDE  # frame px per output cell
         shift = (stride - 1) / 2  # centre of an output cell, frame px
         found = []
         for out in outs:
-            mask = _largest_component(out[0] > 0)
-            if mask.sum() < self.min_mask_px:
-                found.append(None)
-                continue
-            rows, cols, vec = self._field(out, mask)
-            box = (stride * cols.min(), stride * rows.min(), stride * (cols.max() + 1), stride * (rows.max() + 1))
-            found.append((np.stack([stride * cols + shift, stride * rows + shift], axis=1).astype(float), vec, box))
+            candidates = []
+            for mask in _components(out[0] > 0, self.candidates, self.min_mask_px):
+                rows, cols, vec = self._field(out, mask)
+                box = (stride * cols.min(), stride * rows.min(), stride * (cols.max() + 1), stride * (rows.max() + 1))
+                pixels = np.stack([stride * cols + shift, stride * rows + shift], axis=1).astype(float)
+                candidates.append((pixels, vec, box))
+            found.append(candidates)
         return found
 
     def _estimate_same_size(self, inputs, images) -> list[EstimateOutput]:
         n = len(images)
         h, w = images[0].shape[:2]
         t0 = time.perf_counter()
-        # Whole-frame search: the halved frame finds near objects; objects that look small there
-        # (box side under `near_box_px` of the halved frame) are looked for at full resolution.
+        # Whole-frame search: the halved frame finds near objects; where its largest candidate is
+        # missing or small (box side under `near_box_px` of the halved frame) the full-resolution
+        # frame is searched too, where far objects have the sizes the network mostly saw.
         halves = [cv2.resize(im, (w // INPUT_SCALE, h // INPUT_SCALE), interpolation=cv2.INTER_AREA) for im in images]
         found = self._locate(self._run(halves), INPUT_SCALE)
-        small = [i for i, f in enumerate(found)
-                 if f is None or max(f[2][2] - f[2][0], f[2][3] - f[2][1]) < self.near_box_px * INPUT_SCALE]
+        side = lambda box: max(box[2] - box[0], box[3] - box[1])
+        small = [i for i, f in enumerate(found) if not f or side(f[0][2]) < self.near_box_px * INPUT_SCALE]
         if self.full_resolution_search and small:
             for i, f in zip(small, self._locate(self._run([images[i] for i in small]), 1)):
                 found[i] = f or found[i]
-        fields = [None if f is None else (f[0], f[1]) for f in found]
-        located = [i for i in range(n) if found[i] is not None]
-        if self.zoom and located:
-            crops = [self._zoom_crop(images[i], halves[i], found[i][2]) for i in located]
-            for i, out, (_, scale, off) in zip(located, self._run([c[0] for c in crops]), crops):
-                mask = _largest_component(out[0] > 0)
-                if mask.sum() < self.min_mask_px:
+        fields = [[(c[0], c[1]) for c in f] for f in found]  # per frame, per candidate: the field voted on
+        pairs = [(i, j) for i in range(n) for j in range(len(found[i]))]
+        if self.zoom and pairs:
+            crops = [self._zoom_crop(images[i], halves[i], found[i][j][2]) for i, j in pairs]
+            for (i, j), out, (_, scale, off) in zip(pairs, self._run([c[0] for c in crops]), crops):
+                masks = _components(out[0] > 0, 1, self.min_mask_px)
+                if not masks:
                     continue  # keep the whole-frame field
-                rows, cols, vec = self._field(out, mask)
+                rows, cols, vec = self._field(out, masks[0])
                 crop_pts = np.stack([OUTPUT_STRIDE * cols + 0.5, OUTPUT_STRIDE * rows + 0.5], axis=1)
-                fields[i] = ((crop_pts - off) / scale, vec)
+                fields[i][j] = ((crop_pts - off) / scale, vec)
         inference_ms = (time.perf_counter() - t0) * 1e3 / n
+        return [self._solve(inp, cands, inference_ms) for inp, cands in zip(inputs, fields)]
 
-        outputs = []
-        for inp, field in zip(inputs, fields):
-            if field is None:
-                outputs.append(EstimateOutput(Status.OBJECT_NOT_FOUND, message="the object mask is too small or empty",
-                                              stage_ms={"inference": inference_ms}))
-                continue
+    def _solve(self, inp: EstimateInput, candidates: list, inference_ms: float) -> EstimateOutput:
+        """Votes and solves each candidate; the most confident pose wins."""
+        if not candidates:
+            return EstimateOutput(Status.OBJECT_NOT_FOUND, message="the object mask is too small or empty",
+                                  stage_ms={"inference": inference_ms})
+        voting_ms = pnp_ms = 0.0
+        best = None
+        for pixels, vectors in candidates:
             t1 = time.perf_counter()
             rng = np.random.default_rng([self.seed, inp.frame_id & 0xFFFFFFFF])
-            keypoints, inlier_ratio = vote(field[0], field[1], rng, self.voting)
+            keypoints, inlier_ratio = vote(pixels, vectors, rng, self.voting)
             t2 = time.perf_counter()
             kp_rows = np.column_stack([np.arange(len(keypoints)), keypoints])
             out = self._pnp.estimate(replace(inp, keypoints=kp_rows, image=None))
-            out.stage_ms = {"inference": inference_ms, "voting": (t2 - t1) * 1e3,
-                            "pnp": out.stage_ms.get("pnp", (time.perf_counter() - t2) * 1e3)}
+            voting_ms += (t2 - t1) * 1e3
+            pnp_ms += (time.perf_counter() - t2) * 1e3
             if out.status == Status.OK:
                 out.confidence = float(out.confidence * np.mean(inlier_ratio))
-            outputs.append(out)
-        return outputs
+            if best is None or (out.status == Status.OK and (best.status != Status.OK or out.confidence > best.confidence)):
+                best = out
+        best.stage_ms = {"inference": inference_ms, "voting": voting_ms, "pnp": pnp_ms}
+        return best

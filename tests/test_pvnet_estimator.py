@@ -96,5 +96,20 @@ def test_shipped_model_finds_the_default_object(registry, rendered):
         assert metrics.proj_px(out.T_CO, T_gt, CAMERA, verts) < 5.0
         assert 0 < out.confidence <= 1
         assert {"inference", "voting", "pnp"} <= set(out.stage_ms)
-    single = est.estimate(_input(rendered[1][0], 1))
-    assert np.allclose(single.T_CO, outs[1].T_CO, atol=1e-6)  # batching does not change the answer
+    single = est.estimate(_input(rendered[1][0], 1))  # batching does not change the answer (beyond rounding)
+    assert metrics.proj_px(single.T_CO, outs[1].T_CO, CAMERA, verts) < 0.5
+
+
+def test_config_builds_a_pvnet_estimator(blind_model):
+    from estimators.registry import EstimatorRegistry
+
+    def doc(**entry):
+        return {"objects": {"default": {"model": str(DEFAULT_OBJECT)}},
+                "estimators": [{"name": "pvnet", "kind": "pvnet", "objects": ["default"], **entry}]}
+
+    registry = EstimatorRegistry.from_dict(doc(model=str(blind_model), params={"zoom": False}), Path("."))
+    assert isinstance(registry.get("pvnet"), PvnetEstimator) and not registry.get("pvnet").zoom
+    with pytest.raises(ValueError, match="needs `model"):
+        EstimatorRegistry.from_dict(doc(), Path("."))
+    with pytest.raises(ValueError, match="unknown parameter"):
+        EstimatorRegistry.from_dict(doc(model=str(blind_model), params={"zooom": 1}), Path("."))
