@@ -6,12 +6,16 @@ FROM ${BASE_IMAGE}
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
-    PIP_DISABLE_PIP_VERSION_CHECK=1
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    VIRTUAL_ENV=/opt/venv \
+    PATH=/opt/venv/bin:$PATH
 
 WORKDIR /app
 COPY . /app
-# The install command CI uses, with the backend's extra only.
-RUN python3 -m pip install --no-cache-dir -e '.[server]' \
+# The install CI uses (a venv, then pip install -e), with the backend's extra only; the venv also keeps
+# pip off the distribution's own Python (PEP 668 on Debian-based images).
+RUN python3 -m venv /opt/venv \
+ && python -m pip install --no-cache-dir -e '.[server]' \
  && useradd --create-home --uid 10001 --shell /usr/sbin/nologin flextrack
 
 USER 10001

@@ -8,6 +8,10 @@ import importlib
 
 # name -> (module, one-line help)
 BENCHMARKS: dict[str, tuple[str, str]] = {
+    "capacity": ("benchmarks.capacity_bench", "30 FPS clients with p99 under a bound, vs echo, and 2x overload"),
+    "replicas": ("benchmarks.replicas_bench", "1-3 server processes behind gRPC round_robin: spread and throughput"),
+    "batching": ("benchmarks.batching_bench", "dynamic batching on/off for a batch-capable estimator (pvnet)"),
+    "container": ("benchmarks.container_check", "build the Dockerfile with container-check and check the image serves"),
     "service": ("benchmarks.service_bench", "Track stream and unary Estimate: gt_oracle vs a no-op echo servicer"),
 }
 

@@ -79,7 +79,11 @@ class TrackClient:
     def __init__(self, target: str, on_response: Callable[[pb.EstimateResponse], None],
                  on_failure: Callable[[int, str], None], *,
                  interceptors: Sequence[grpc.StreamStreamClientInterceptor] = (),
-                 options: TransportOptions = TransportOptions()):
+                 options: TransportOptions = TransportOptions(),
+                 credentials: grpc.ChannelCredentials | None = None, metadata: Sequence[tuple[str, str]] = ()):
+        """`credentials`: TLS (and token) channel credentials, client_sdk.credentials; `metadata`: sent with the
+        stream, e.g. client_sdk.credentials.token_metadata(token) on a plaintext channel."""
+        self._credentials, self._metadata = credentials, tuple(metadata)
         self.target = target
         self._on_response = on_response
         self._on_failure = on_failure
@@ -152,7 +156,8 @@ class TrackClient:
 
     def _one_stream(self) -> str:
         """Open a channel and a stream, pump responses until it breaks; returns why it ended."""
-        channel = grpc.insecure_channel(self.target)
+        channel = (grpc.secure_channel(self.target, self._credentials) if self._credentials is not None
+                   else grpc.insecure_channel(self.target))
         try:
             try:
                 grpc.channel_ready_future(channel).result(timeout=self.options.connect_timeout_s)
@@ -160,7 +165,7 @@ class TrackClient:
                 return f"backend {self.target} not reachable"
             outbox: queue.Queue = queue.Queue()
             stub = pb_grpc.PoseEstimationStub(grpc.intercept_channel(channel, *self._interceptors))
-            call = stub.Track(iter(outbox.get, _END))
+            call = stub.Track(iter(outbox.get, _END), metadata=self._metadata or None)
             with self._lock:
                 self._outbox, self._call = outbox, call
             self._backoff.reset()

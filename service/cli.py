@@ -25,6 +25,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     parser.add_argument("--check", metavar="ADDR",
                         help="do not serve: ask the server at ADDR (host:port) for its health; exit 0 if SERVING")
+    from service import hardening
+
+    hardening.add_arguments(parser)
 
 
 def check(address: str, timeout_s: float = 3.0) -> int:
@@ -51,5 +54,12 @@ def run(args: argparse.Namespace) -> int:
     if not args.config.is_file():
         print(f"flextrack serve: config file {args.config} not found", file=sys.stderr)
         return 2
+    from service.hardening import Hardening
+
+    try:
+        hardening = Hardening.from_args(args)
+    except ValueError as exc:
+        print(f"flextrack serve: {exc}", file=sys.stderr)
+        return 2
     return asyncio.run(server.serve(lambda: EstimatorRegistry.from_config(args.config), args.host, args.port,
-                                    args.max_message_mb, args.grace_s, args.workers))
+                                    args.max_message_mb, args.grace_s, args.workers, hardening=hardening))

@@ -28,6 +28,7 @@ from estimators.registry import EstimatorRegistry
 from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
 from service.estimation import EstimationService
+from service.hardening import Hardening
 from service.servicer import PoseEstimationServicer
 
 log = logging.getLogger("flextrack.service")
@@ -64,9 +65,13 @@ class RunningServer:
     port: int
     servicer: PoseEstimationServicer
     health: health.aio.HealthServicer
+    hardening: Hardening | None = None  # TLS, tokens, admission, batching, metrics
+    metrics_http: object = None  # the /metrics HTTP server, when one runs
 
     async def set_registry(self, registry: EstimatorRegistry) -> None:
         """Start answering with these estimators; health turns SERVING once they are all ready."""
+        if self.hardening is not None:
+            registry = self.hardening.prepare(registry)  # batching wraps the estimators that can batch
         self.servicer.service = EstimationService(registry)
         status = health_pb2.HealthCheckResponse.SERVING if registry.ready else health_pb2.HealthCheckResponse.NOT_SERVING
         for name in ("", SERVICE_NAME):
@@ -75,13 +80,17 @@ class RunningServer:
     async def stop(self, grace_s: float) -> None:
         await self.health.enter_graceful_shutdown()
         await self.server.stop(grace_s)
+        if self.metrics_http is not None:
+            self.metrics_http.shutdown()
 
 
 async def start_server(host: str, port: int, executor: ThreadPoolExecutor,
-                       max_message_mb: float = DEFAULT_MAX_MESSAGE_MB) -> RunningServer:
+                       max_message_mb: float = DEFAULT_MAX_MESSAGE_MB,
+                       hardening: Hardening | None = None) -> RunningServer:
     """Listen on host:port (0 = any free port) with health NOT_SERVING and no estimators yet."""
     max_bytes = int(max_message_mb * 1024 * 1024)
-    server = grpc.aio.server(options=[("grpc.max_receive_message_length", max_bytes),
+    server = grpc.aio.server(interceptors=hardening.interceptors() if hardening else None,
+                             options=[("grpc.max_receive_message_length", max_bytes),
                                       ("grpc.max_send_message_length", max_bytes)])
     servicer = PoseEstimationServicer(executor)
     pb_grpc.add_PoseEstimationServicer_to_server(servicer, server)
@@ -90,16 +99,20 @@ async def start_server(host: str, port: int, executor: ThreadPoolExecutor,
     reflection.enable_server_reflection((SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME), server)
     for name in ("", SERVICE_NAME):
         await health_servicer.set(name, health_pb2.HealthCheckResponse.NOT_SERVING)
-    bound = server.add_insecure_port(f"{host}:{port}")
+    credentials = hardening.credentials() if hardening else None
+    bound = (server.add_secure_port(f"{host}:{port}", credentials) if credentials
+             else server.add_insecure_port(f"{host}:{port}"))
     if bound == 0:
         raise OSError(f"cannot listen on {host}:{port}")
     await server.start()
-    return RunningServer(server, bound, servicer, health_servicer)
+    return RunningServer(server, bound, servicer, health_servicer, hardening,
+                         hardening.start_metrics() if hardening else None)
 
 
 async def serve(load_registry: Callable[[], EstimatorRegistry], host: str = "0.0.0.0", port: int = 50051,
                 max_message_mb: float = DEFAULT_MAX_MESSAGE_MB, grace_s: float = DEFAULT_GRACE_S,
-                workers: int = DEFAULT_WORKERS, on_serving: Callable[[int], None] | None = None) -> int:
+                workers: int = DEFAULT_WORKERS, on_serving: Callable[[int], None] | None = None,
+                hardening: Hardening | None = None) -> int:
     """Run until SIGTERM/SIGINT; 0 after a graceful stop, 1 when the estimators fail to load.
 
     `on_serving(port)` is called once the server is SERVING (the benchmark learns its port so).
@@ -108,8 +121,9 @@ async def serve(load_registry: Callable[[], EstimatorRegistry], host: str = "0.0
     stop = asyncio.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, stop.set)
+    workers = hardening.workers(workers) if hardening else workers
     with ThreadPoolExecutor(workers, thread_name_prefix="estimator") as executor:
-        running = await start_server(host, port, executor, max_message_mb)
+        running = await start_server(host, port, executor, max_message_mb, hardening)
         log.info("listening", extra={"address": f"{host}:{running.port}", "max_message_mb": max_message_mb})
         try:
             registry = await loop.run_in_executor(executor, load_registry)
@@ -137,8 +151,10 @@ class BackgroundServer:
     """
 
     def __init__(self, registry: EstimatorRegistry, host: str = "127.0.0.1", port: int = 0,
-                 max_message_mb: float = DEFAULT_MAX_MESSAGE_MB, grace_s: float = 1.0, workers: int = DEFAULT_WORKERS):
+                 max_message_mb: float = DEFAULT_MAX_MESSAGE_MB, grace_s: float = 1.0, workers: int = DEFAULT_WORKERS,
+                 hardening: Hardening | None = None):
         self.registry = registry
+        self.hardening = hardening  # TLS, tokens, admission, batching, metrics (service.hardening)
         self._host, self._port, self._max_message_mb = host, port, max_message_mb
         self._grace_s, self._workers = grace_s, workers
         self._started = threading.Event()
@@ -154,9 +170,10 @@ class BackgroundServer:
 
     async def _main(self) -> None:
         self._loop, self._stop = asyncio.get_running_loop(), asyncio.Event()
-        with ThreadPoolExecutor(self._workers, thread_name_prefix="estimator") as executor:
+        workers = self.hardening.workers(self._workers) if self.hardening else self._workers
+        with ThreadPoolExecutor(workers, thread_name_prefix="estimator") as executor:
             try:
-                running = await start_server(self._host, self._port, executor, self._max_message_mb)
+                running = await start_server(self._host, self._port, executor, self._max_message_mb, self.hardening)
                 await running.set_registry(self.registry)
             except Exception as exc:  # noqa: BLE001 - re-raised in the thread that called start()
                 self._error = exc

@@ -9,7 +9,6 @@ from __future__ import annotations
 import grpc
 import numpy as np
 import pytest
-from grpc_harness import serve
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -18,10 +17,9 @@ from estimators.registry import EstimatorRegistry
 from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
 from loadtest.workload import synthetic
-from service.admission import AdmissionInterceptor
 from service.cli import DEFAULT_CONFIG
-from service.metrics import ServiceMetrics
-from service.security import BearerTokenInterceptor
+from service.hardening import Hardening
+from service.server import BackgroundServer
 
 TOKEN = "fuzz-token"
 METADATA = (("authorization", f"Bearer {TOKEN}"),)
@@ -38,8 +36,9 @@ def server(tmp_path_factory):
     registry = EstimatorRegistry.from_config(DEFAULT_CONFIG)
     registry.get("gt_oracle").add_sequence(seq.root)
     registry.get("gt_noisy").add_sequence(seq.root)
-    interceptors = [BearerTokenInterceptor([TOKEN]), AdmissionInterceptor(64, ServiceMetrics())]
-    with serve(registry, interceptors=interceptors) as address, grpc.insecure_channel(address) as channel:
+    hardening = Hardening(tokens=[TOKEN], max_queue=64)
+    with BackgroundServer(registry, grace_s=0.0, hardening=hardening) as srv, \
+            grpc.insecure_channel(srv.address) as channel:
         yield channel, seq
 
 

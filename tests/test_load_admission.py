@@ -10,7 +10,6 @@ import urllib.request
 import grpc
 import numpy as np
 import pytest
-from grpc_harness import serve
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from estimators.base import EstimateInput, EstimateOutput, Estimator, Status
@@ -19,7 +18,8 @@ from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
 from loadtest import runner, workload
 from service.admission import AdmissionInterceptor
-from service.metrics import ServiceMetrics
+from service.hardening import Hardening
+from service.server import BackgroundServer
 
 
 class SlowEstimator(Estimator):
@@ -41,10 +41,9 @@ class SlowEstimator(Estimator):
 
 @pytest.fixture()
 def slow_server():
-    estimator, metrics = SlowEstimator(), ServiceMetrics()
-    admission = AdmissionInterceptor(max_queue=2, metrics=metrics, resolve=lambda name: name or "slow")
-    with serve(EstimatorRegistry([estimator]), interceptors=[admission], workers=4) as address:
-        yield address, estimator, metrics
+    estimator, hardening = SlowEstimator(), Hardening(max_queue=2)
+    with BackgroundServer(EstimatorRegistry([estimator]), grace_s=0.0, workers=4, hardening=hardening) as srv:
+        yield srv.address, estimator, hardening.metrics
 
 
 @pytest.mark.parametrize("rpc, refused", [("track", "status:UNAVAILABLE"), ("estimate", "grpc:RESOURCE_EXHAUSTED")])
@@ -65,12 +64,12 @@ def test_overload_refuses_the_excess_and_keeps_serving(slow_server, rpc, refused
 
 
 def test_unbounded_queue_lets_every_frame_in(slow_server):
-    estimator, metrics = SlowEstimator(0.005), ServiceMetrics()
-    with serve(EstimatorRegistry([estimator]), interceptors=[AdmissionInterceptor(0, metrics)]) as address:
-        spec = runner.LoadSpec((address,), clients=3, fps=30, duration_s=0.5, warmup_s=0.2)
+    estimator, hardening = SlowEstimator(0.005), Hardening()
+    with BackgroundServer(EstimatorRegistry([estimator]), grace_s=0.0, hardening=hardening) as srv:
+        spec = runner.LoadSpec((srv.address,), clients=3, fps=30, duration_s=0.5, warmup_s=0.2)
         result = runner.run(spec, workload.synthetic(payload_kb=5, frames=2))
     assert result.samples and {s.outcome for s in result.samples} == {"OK"}
-    assert metrics.count("RESOURCE_EXHAUSTED") == 0
+    assert hardening.metrics.count("RESOURCE_EXHAUSTED") == 0
 
 
 def test_metrics_endpoint_serves_counts_latency_and_queue_depth(slow_server):
@@ -97,16 +96,16 @@ def test_negative_bound_is_refused():
 
 
 def test_stream_bound_refuses_new_devices_at_once_and_keeps_health_open():
-    estimator, metrics = SlowEstimator(0.002), ServiceMetrics()
-    admission = AdmissionInterceptor(0, metrics, max_streams=2)
-    with serve(EstimatorRegistry([estimator]), interceptors=[admission]) as address:
-        spec = runner.LoadSpec((address,), clients=5, fps=30, duration_s=1.0, warmup_s=0.5, await_admission=True)
+    estimator, hardening = SlowEstimator(0.002), Hardening(max_streams=2)
+    with BackgroundServer(EstimatorRegistry([estimator]), grace_s=0.0, hardening=hardening) as srv:
+        spec = runner.LoadSpec((srv.address,), clients=5, fps=30, duration_s=1.0, warmup_s=0.5,
+                               await_admission=True)
         result = runner.run(spec, workload.synthetic(payload_kb=5, frames=2))
-        with grpc.insecure_channel(address) as channel:
+        with grpc.insecure_channel(srv.address) as channel:
             health = health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(), timeout=5)
     served = {s.client for s in result.samples if s.outcome == "OK"}
     refused = {s.client for s in result.samples if s.outcome == "grpc:RESOURCE_EXHAUSTED"}
     assert len(served) == 2 and refused and refused <= set(range(5)) - served  # the first two streams stay
     assert health.status == health_pb2.HealthCheckResponse.SERVING
     refusals = sum(s.client in refused for s in result.samples)
-    assert metrics.count("RESOURCE_EXHAUSTED", "Track", "-") >= refusals
+    assert hardening.metrics.count("RESOURCE_EXHAUSTED", "Track", "-") >= refusals

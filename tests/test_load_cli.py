@@ -6,15 +6,14 @@ import csv
 import json
 
 import pytest
-from grpc_harness import serve
 
 from benchmarks.toy_sequence import write_orbit_sequence
 from estimators.gt_oracle import GtOracleEstimator
 from estimators.registry import EstimatorRegistry
 from flextrack.cli import main
 from loadtest import runner, workload
-from service.admission import AdmissionInterceptor
-from service.metrics import ServiceMetrics
+from service.hardening import Hardening
+from service.server import BackgroundServer
 
 
 @pytest.fixture(scope="module")
@@ -25,8 +24,8 @@ def oracle(tmp_path_factory):
 
 def test_loadtest_cli_reports_and_writes_csv_and_plot(oracle, tmp_path, capsys):
     registry, seq = oracle
-    with serve(registry) as address:
-        rc = main(["loadtest", "--target", address, "--clients", "3", "--fps", "30", "--payload-kb", "20",
+    with BackgroundServer(registry, grace_s=0.0) as srv:
+        rc = main(["loadtest", "--target", srv.address, "--clients", "3", "--fps", "30", "--payload-kb", "20",
                    "--estimator", "gt_oracle", "--sequence", str(seq.root), "--duration", "1", "--warmup", "0.3",
                    "--out", str(tmp_path)])
     assert rc == 0
@@ -42,8 +41,8 @@ def test_loadtest_cli_reports_and_writes_csv_and_plot(oracle, tmp_path, capsys):
 
 def test_ramp_finds_the_largest_passing_client_count(oracle, tmp_path, capsys):
     registry, seq = oracle
-    with serve(registry) as address:
-        rc = main(["loadtest", "--target", address, "--ramp", "--clients", "1", "--max-clients", "4", "--fps", "20",
+    with BackgroundServer(registry, grace_s=0.0) as srv:
+        rc = main(["loadtest", "--target", srv.address, "--ramp", "--clients", "1", "--max-clients", "4", "--fps", "20",
                    "--payload-kb", "5", "--sequence", str(seq.root), "--duration", "0.4", "--warmup", "0.2",
                    "--p99-bound-ms", "2000", "--out", str(tmp_path)])
     assert rc == 0
@@ -54,12 +53,12 @@ def test_ramp_finds_the_largest_passing_client_count(oracle, tmp_path, capsys):
 
 def test_round_robin_over_two_addresses_spreads_the_streams(oracle):
     registry, seq = oracle
-    metrics = [ServiceMetrics(), ServiceMetrics()]
-    with serve(registry, interceptors=[AdmissionInterceptor(0, metrics[0])]) as a, \
-            serve(registry, interceptors=[AdmissionInterceptor(0, metrics[1])]) as b:
-        spec = runner.LoadSpec((a, b), clients=4, fps=30, duration_s=0.6, warmup_s=0.3)
+    hardening = [Hardening(), Hardening()]
+    with BackgroundServer(registry, grace_s=0.0, hardening=hardening[0]) as a, \
+            BackgroundServer(registry, grace_s=0.0, hardening=hardening[1]) as b:
+        spec = runner.LoadSpec((a.address, b.address), clients=4, fps=30, duration_s=0.6, warmup_s=0.3)
         result = runner.run(spec, workload.from_sequence(seq.root, payload_kb=5))
-    served = [m.count("OK", "Track") for m in metrics]
+    served = [h.metrics.count("OK", "Track") for h in hardening]
     assert all(n > 0 for n in served)  # both replicas got streams
     assert sum(served) >= len(result.samples)
 

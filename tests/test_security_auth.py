@@ -6,7 +6,6 @@ import logging
 
 import grpc
 import pytest
-from grpc_harness import serve
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from benchmarks.toy_sequence import write_orbit_sequence
@@ -16,6 +15,8 @@ from estimators.registry import EstimatorRegistry
 from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
 from service import security
+from service.hardening import Hardening
+from service.server import BackgroundServer
 
 trustme = pytest.importorskip("trustme", reason="trustme (dev extra) makes the test certificates")
 
@@ -62,7 +63,8 @@ def _track(channel, seq, metadata=()):
 
 def test_tls_server_answers_a_client_that_trusts_its_ca(registry, pki):
     reg, seq = registry
-    with serve(reg, credentials=security.server_credentials(pki["cert"], pki["key"])) as address:
+    with BackgroundServer(reg, grace_s=0.0, hardening=Hardening(tls_cert=pki["cert"], tls_key=pki["key"])) as srv:
+        address = srv.address
         with client_credentials.secure_channel(address, root_ca=pki["ca"], server_name="localhost") as channel:
             assert _estimate(channel, seq).status == pb.EstimateResponse.OK
         with client_credentials.secure_channel(address, root_ca=pki["rogue_ca"], server_name="localhost") as channel:
@@ -75,8 +77,9 @@ def test_tls_server_answers_a_client_that_trusts_its_ca(registry, pki):
 
 def test_mutual_tls_refuses_clients_without_a_certificate_signed_by_the_client_ca(registry, pki):
     reg, seq = registry
-    creds = security.server_credentials(pki["cert"], pki["key"], client_ca_file=pki["ca"])
-    with serve(reg, credentials=creds) as address:
+    hardening = Hardening(tls_cert=pki["cert"], tls_key=pki["key"], client_ca=pki["ca"])
+    with BackgroundServer(reg, grace_s=0.0, hardening=hardening) as srv:
+        address = srv.address
         good = client_credentials.secure_channel(address, root_ca=pki["ca"], client_cert=pki["client_cert"],
                                                  client_key=pki["client_key"], server_name="localhost")
         with good as channel:
@@ -92,9 +95,9 @@ def test_mutual_tls_refuses_clients_without_a_certificate_signed_by_the_client_c
 def test_token_is_required_on_every_method_but_health(registry, caplog):
     reg, seq = registry
     wrong = "wrong-token-that-must-not-be-logged"
-    interceptor = security.BearerTokenInterceptor([TOKEN])
-    with caplog.at_level(logging.DEBUG), serve(reg, interceptors=[interceptor]) as address, \
-            grpc.insecure_channel(address) as channel:
+    hardening = Hardening(tokens=[TOKEN])
+    with caplog.at_level(logging.DEBUG), BackgroundServer(reg, grace_s=0.0, hardening=hardening) as srv, \
+            grpc.insecure_channel(srv.address) as channel:
         stub = pb_grpc.PoseEstimationStub(channel)
         for metadata in ((), client_credentials.token_metadata(wrong), (("authorization", TOKEN),)):
             calls = (lambda md: _estimate(channel, seq, md), lambda md: _track(channel, seq, md),
@@ -115,8 +118,9 @@ def test_token_is_required_on_every_method_but_health(registry, caplog):
 
 def test_token_over_tls_with_sdk_call_credentials(registry, pki):
     reg, seq = registry
-    with serve(reg, interceptors=[security.BearerTokenInterceptor([TOKEN, "another"])],
-               credentials=security.server_credentials(pki["cert"], pki["key"])) as address:
+    hardening = Hardening(tls_cert=pki["cert"], tls_key=pki["key"], tokens=[TOKEN, "another"])
+    with BackgroundServer(reg, grace_s=0.0, hardening=hardening) as srv:
+        address = srv.address
         for token, ok in ((TOKEN, True), ("another", True), ("nope", False), (None, False)):
             with client_credentials.secure_channel(address, root_ca=pki["ca"], token=token,
                                                    server_name="localhost") as channel:
@@ -181,3 +185,21 @@ def test_serve_flags_are_checked_before_serving(tmp_path, pki):
         with pytest.raises(ValueError, match=message):
             build(*flags)
     assert build("--max-batch", "4").workers(2) == 8 and plain.workers(3) == 3
+
+
+def test_track_client_streams_over_tls_with_a_token(registry, pki):
+    import queue
+
+    from client_sdk.transport import TrackClient, TransportOptions, make_request
+
+    reg, seq = registry
+    hardening = Hardening(tls_cert=pki["cert"], tls_key=pki["key"], tokens=[TOKEN])
+    answers: queue.Queue = queue.Queue()
+    creds = client_credentials.channel_credentials(pki["ca"], token=TOKEN)
+    with BackgroundServer(reg, grace_s=0.0, hardening=hardening) as srv, \
+            TrackClient(srv.address, answers.put, lambda frame_id, why: answers.put(why), credentials=creds,
+                        options=TransportOptions(connect_timeout_s=2.0)) as client:
+        assert client.wait_connected(5)
+        assert client.submit(make_request(frame_id=3, capture_time_ns=int(seq.frame_times_ns[3])))
+        answer = answers.get(timeout=10)
+    assert answer.status == pb.EstimateResponse.OK and answer.frame_id == 3, answer
