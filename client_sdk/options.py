@@ -69,6 +69,11 @@ class TrackerOptions:
     applied but the reference is kept, so V_avg spans at least the minimum baseline (its noise is the
     backend's position noise / baseline; 0.1 s suits a noisy backend at 60-120 FPS)."""
 
+    max_backend_age_s: float = 1.0
+    """PIA extension: with the backend in use, a pose whose last backend correction is older than this
+    is TRACKING_LOST (IMU-only drift grows without bound: the server is gone or cannot see the object).
+    Only with `pia` on and `backend_after_init`; a failure like the paper's two, so it resets the PRM."""
+
     # --- Initialisation (the paper's "System Initialization") ---
     init_window_s: float = 0.5
     """IMU span before the first backend frame used for gravity and gyro bias."""

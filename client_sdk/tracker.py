@@ -233,6 +233,9 @@ class Tracker:
             uv = self.inspector.project(T_CO)
             status, detail = self.inspector.inspect(uv, self._last_uv_now(t_last), fps)
             self._last_uv = uv
+            age_s = (t - self._anchor_t) * 1e-9
+            if status is Status.FINE and self.options.backend_after_init and age_s > self.options.max_backend_age_s:
+                status, detail = Status.TRACKING_LOST, f"no backend pose for {age_s:.1f} s: IMU-only drift"
         else:
             status, detail = Status.FINE, "tracking"
         failed = status is not Status.FINE

@@ -36,9 +36,9 @@ _END = object()
 @dataclass(frozen=True)
 class TransportOptions:
     request_timeout_s: float = 1.0  # no response by then: report a failure and reconnect
-    connect_timeout_s: float = 1.0  # wait this long for the channel to become ready per attempt
+    connect_timeout_s: float = 0.5  # wait this long for the channel to become ready per attempt
     backoff_initial_s: float = 0.05
-    backoff_max_s: float = 2.0
+    backoff_max_s: float = 0.5
     backoff_multiplier: float = 2.0
     jitter: float = 0.2  # each wait is scaled by U(1 - jitter, 1 + jitter)
     seed: int = 0  # for the jitter

@@ -244,3 +244,25 @@ def test_client_sdk_imports_nothing_heavy():
             "'matplotlib', 'trimesh', 'pyrender') if m in sys.modules]; print(bad); sys.exit(1 if bad else 0)")
     out = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True)
     assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_a_silent_backend_turns_the_pose_lost_and_a_fresh_pose_brings_it_back():
+    tr = _initialised()  # last backend pose captured at 600 ms
+    _still(tr, 605, 1500)
+    req = tr.add_frame(1500 * MS).request
+    assert tr.status is Status.FINE and req is not None
+    assert tr.on_backend_failure(req.request_id)  # the server is gone
+    _still(tr, 1505, 1700)
+    r = tr.add_frame(1700 * MS)  # 1.1 s without a backend pose
+    assert r.status is Status.TRACKING_LOST and "no backend pose" in tr.status_detail
+    assert r.request is not None and r.request.reason == "failure"
+    assert tr.on_backend_response(r.request.request_id, r.request.frame_t_ns, T_CO_0) is ResponseOutcome.APPLIED
+    _still(tr, 1705, 1710)
+    assert tr.add_frame(1710 * MS).status is Status.FINE
+    # the IMU-only ablation expects no backend, so it never calls that lost
+    tr = _tracker(backend_after_init=False)
+    _still(tr, 5, 600)
+    req = tr.add_frame(600 * MS).request
+    tr.on_backend_response(req.request_id, req.frame_t_ns, T_CO_0)
+    _still(tr, 605, 3000)
+    assert tr.add_frame(3000 * MS).status is Status.FINE

@@ -27,7 +27,7 @@ KILL_AT_S = 3.5  # sequence time (the IMU starts 2 s before the first frame)
 DOWN_S = 2.0
 # Reconnect at least every ~0.5 s: with the SDK's default (backoff up to 2 s, 1 s connect timeout) the
 # client may only try again up to ~3 s after the server is back, which alone breaks the 1 s bound.
-TRANSPORT = TransportOptions(backoff_max_s=0.4, connect_timeout_s=0.3)
+TRANSPORT = TransportOptions()  # the SDK defaults: backoff up to 0.5 s, 0.5 s connect timeout
 
 
 @pytest.fixture(scope="module")
@@ -90,6 +90,9 @@ def test_client_survives_a_server_crash_and_recovers(seq, tmp_path):
     assert away and not any(p.connected for p in away)
     away_rows = [r for r, t in zip(record.rows, rows) if killed + 0.3 < t < back]
     assert away_rows and all(r.T_CO is not None for r in away_rows)
+    # ... and once its last backend pose is over 1 s old (max_backend_age_s), the tracker calls it lost
+    stale = [r for r, t in zip(record.rows, rows) if killed + 1.2 < t < back]
+    assert stale and all(r.status == "TRACKING_LOST" for r in stale)
 
     # Back: within 1 s of the server's return, the mean 2D error (over the next 0.5 s of frames) is below 1 px.
     record.scored()
