@@ -54,7 +54,7 @@ class FrameResult:
 def _as_int(value, name: str, what: str = "an integer number of nanoseconds") -> int:
     # ValueError for every bad input (not TypeError), as the API promises the shells
     if isinstance(value, bool):
-        raise ValueError(f"{name} must be {what}, got {value!r}")
+        raise ValueError(f"{name} must be {what}, got {value!r}")  # noqa: TRY004
     try:
         return operator.index(value)
     except TypeError:

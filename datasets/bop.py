@@ -12,8 +12,8 @@ def read_scene_gt(path: str | Path, obj_id: int | None = None) -> dict[int, np.n
     """frame id -> T_CO (4x4, metres) of `obj_id` (or of the first object when None)."""
     doc = json.loads(Path(path).read_text())
     poses: dict[int, np.ndarray] = {}
-    for frame, annotations in doc.items():
-        for ann in annotations:
+    for frame, frame_annotations in doc.items():
+        for ann in frame_annotations:
             if obj_id is not None and int(ann["obj_id"]) != obj_id:
                 continue
             T = np.eye(4)

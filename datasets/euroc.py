@@ -59,8 +59,7 @@ def write_imu(path: str | Path, imu: ImuData) -> None:
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     with open(path, "w") as f:
         f.write(IMU_HEADER + "\n")
-        for t, g, a in zip(imu.t_ns, imu.gyro, imu.accel):
-            f.write(f"{int(t)}," + ",".join(f"{x:.10g}" for x in (*g, *a)) + "\n")
+        f.writelines(f"{int(t)}," + ",".join(f"{x:.10g}" for x in (*g, *a)) + "\n" for t, g, a in zip(imu.t_ns, imu.gyro, imu.accel))
 
 
 def read_groundtruth(path: str | Path) -> GroundTruth:
@@ -73,5 +72,4 @@ def write_groundtruth(path: str | Path, gt: GroundTruth) -> None:
     rows = np.hstack([gt.p_WB, gt.q_WB, gt.v_WB, gt.bias_gyro, gt.bias_accel])
     with open(path, "w") as f:
         f.write(GT_HEADER + "\n")
-        for t, r in zip(gt.t_ns, rows):
-            f.write(f"{int(t)}," + ",".join(f"{x:.10g}" for x in r) + "\n")
+        f.writelines(f"{int(t)}," + ",".join(f"{x:.10g}" for x in r) + "\n" for t, r in zip(gt.t_ns, rows))

@@ -62,8 +62,7 @@ def read_frame_times(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 def write_frame_times(path: str | Path, ids: np.ndarray, times_ns: np.ndarray) -> None:
     with open(path, "w") as f:
         f.write(FRAME_TIMES_HEADER + "\n")
-        for i, t in zip(ids, times_ns):
-            f.write(f"{int(i)},{int(t)}\n")
+        f.writelines(f"{int(i)},{int(t)}\n" for i, t in zip(ids, times_ns))
 
 
 def load(root: str | Path) -> Sequence:

@@ -24,7 +24,6 @@ from runners.replay import ReplayOptions, replay
 from runners.results import TrackRecord
 from runners.session import model_vertices
 
-
 # The tracker as the paper describes it and ours (client_sdk.options.preset explains both).
 PAPER_FAITHFUL = preset("paper")
 OURS = preset("ours")

@@ -96,8 +96,8 @@ def report(rows: list[list], seq, seed: int, extra: dict) -> str:
         f"sees it ({seq.meta.get('placement', {})}); Noisy backend 3 mm / 0.3 deg per axis, seed {seed}; paper network "
         "model and Pixel 2 slowdown."), "",
         common.markdown_table(["variant", "position mm", "orientation deg", "2D projection px"], rows), "",
-        "Frames scored above: in view and FINE. In-view frames with a FINE pose, and the error over all in-view "
-        "frames (TRACKING_LOST / WRONG_POSE poses included, which the tracker itself flags as unusable):", "",
+        ("Frames scored above: in view and FINE. In-view frames with a FINE pose, and the error over all in-view "
+         "frames (TRACKING_LOST / WRONG_POSE poses included, which the tracker itself flags as unusable):"), "",
         common.markdown_table(["variant", "FINE / in view", "all in view: mm", "deg", "px"], coverage), "",
         (f"BSCM {'lowers' if full < off else 'does NOT lower'} the 2D error: {full:.2f} px with it, {off:.2f} px "
         "without (`full` is the paper-faithful tracker; `ours` adds our PRM filter, "

@@ -18,8 +18,8 @@ import sys
 import time
 from pathlib import Path
 
-from client_sdk.options import preset
 from client_sdk.network_model import NetworkOptions
+from client_sdk.options import preset
 from client_sdk.slowdown import PIXEL2_FACTOR
 from datasets import sequence as sequence_io
 from runners import session

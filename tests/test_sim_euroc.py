@@ -12,8 +12,8 @@ from flextrack.cli import main as flextrack_main
 from flextrack.geometry import se3, so3
 from simulator.default_object import DEFAULT_DIR
 from simulator.euroc_convert import convert_euroc, visibility
-from simulator.render import load_model
 from simulator.integrate import integrate
+from simulator.render import load_model
 
 EUROC = Path(__file__).resolve().parents[2] / "shared" / "data" / "euroc_v1_02_medium"
 pytestmark = pytest.mark.skipif(not EUROC.exists(), reason=f"{EUROC} absent (shared data not mounted)")

@@ -23,11 +23,11 @@ class PinholeCamera:
     distortion: tuple[float, ...] = field(default=())
 
     @classmethod
-    def linemod(cls) -> "PinholeCamera":
+    def linemod(cls) -> PinholeCamera:
         return cls(LINEMOD_FX, LINEMOD_FY, LINEMOD_CX, LINEMOD_CY, 640, 480)
 
     @classmethod
-    def from_K(cls, K: np.ndarray, width: int, height: int, distortion=()) -> "PinholeCamera":
+    def from_K(cls, K: np.ndarray, width: int, height: int, distortion=()) -> PinholeCamera:
         K = np.asarray(K, dtype=float).reshape(3, 3)
         return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], int(width), int(height), tuple(distortion))
 
