@@ -13,6 +13,7 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "batching": ("benchmarks.batching_bench", "dynamic batching on/off for a batch-capable estimator (pvnet)"),
     "container": ("benchmarks.container_check", "build the Dockerfile with container-check and check the image serves"),
     "tracker": ("benchmarks.tracker_bench", "tracker core: PIM/PRM per call and PPM per IMU sample; --accuracy"),
+    "pvnet": ("benchmarks.pvnet_bench", "pvnet estimator: decode/inference/voting/PnP ms, frames/s per batch"),
     "service": ("benchmarks.service_bench", "Track stream and unary Estimate: gt_oracle vs a no-op echo servicer"),
 }
 

@@ -20,6 +20,7 @@ ENTRY_POINT_GROUP = "flextrack.estimators"
 BUILTIN_KINDS = {
     "gt_oracle": "estimators.gt_oracle:GtOracleEstimator",
     "pnp": "estimators.pnp:PnpEstimator",
+    "pvnet": "estimators.pvnet:PvnetEstimator",
 }
 
 
