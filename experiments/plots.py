@@ -59,11 +59,13 @@ def ablation(rows: list[list], path: Path) -> Path:
     return path
 
 
-def sawtooth(series: dict[str, tuple[np.ndarray, np.ndarray]], path: Path, title: str) -> Path:
-    """Per-frame 2D error over about one second (the paper's Figure 5)."""
+def _error_series(series: dict[str, tuple[np.ndarray, np.ndarray]], path: Path, title: str, *,
+                  markers: bool, log: bool) -> Path:
     fig, ax = plt.subplots(figsize=(9, 3.8))
     for name, (t_s, px) in series.items():
-        ax.plot(t_s, px, "-o", ms=2.5, lw=0.8, label=name)
+        ax.plot(t_s, px, "-o" if markers else "-", ms=2.5, lw=0.8, label=name)
+    if log:
+        ax.set_yscale("log")
     ax.set_xlabel("time [s]")
     ax.set_ylabel("2D projection error [px]")
     ax.set_title(title)
@@ -73,19 +75,13 @@ def sawtooth(series: dict[str, tuple[np.ndarray, np.ndarray]], path: Path, title
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def sawtooth(series: dict[str, tuple[np.ndarray, np.ndarray]], path: Path, title: str) -> Path:
+    """Per-frame 2D error over about one second (the paper's Figure 5), one marker a frame."""
+    return _error_series(series, path, title, markers=True, log=False)
 
 
 def error_over_time(series: dict[str, tuple[np.ndarray, np.ndarray]], path: Path, title: str) -> Path:
-    fig, ax = plt.subplots(figsize=(9, 3.8))
-    for name, (t_s, px) in series.items():
-        ax.plot(t_s, px, lw=0.8, label=name)
-    ax.set_yscale("log")
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("2D projection error [px]")
-    ax.set_title(title)
-    ax.legend()
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    """2D error over a whole run, log scale (errors span 0.1 to 1000 px across variants)."""
+    return _error_series(series, path, title, markers=False, log=True)
