@@ -42,6 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stream-headroom", type=float, default=0.8,
                         help="overload run: --max-streams = this share of the measured capacity")
     parser.add_argument("--no-overload", action="store_true", help="skip the run at twice the capacity")
+    parser.add_argument("--server-cpus", help="pin each server process to these CPUs, e.g. 1 (default: no pinning)")
+    parser.add_argument("--client-cpus", help="pin the load generator to these CPUs, e.g. 0: on a small machine "
+                        "a load generator sharing the server's cores takes CPU from it, and its own timings suffer")
     parser.add_argument("--out", type=Path, default=Path("out/bench_capacity"))
 
 
@@ -93,6 +96,13 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     results: dict = {"date_utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "fps": args.fps,
                      "payload_kb": args.payload_kb, "p99_bound_ms": args.p99_bound_ms, "backends": {}}
+    try:
+        server_cpus, client_cpus = servers.parse_cpus(args.server_cpus), servers.parse_cpus(args.client_cpus)
+    except ValueError as exc:
+        print(f"flextrack bench capacity: {exc}")
+        return 2
+    servers.pin(0, client_cpus)
+    results["server_cpus"], results["client_cpus"] = args.server_cpus, args.client_cpus
     with tempfile.TemporaryDirectory() as tmp:
         config, sequence = (args.config, args.sequence) if args.config else _toy_config(Path(tmp))
         if sequence is None:
@@ -104,10 +114,10 @@ def run(args: argparse.Namespace) -> int:
         names = [n for n in args.estimators.split(",") if n]
         works = {"echo": workload.synthetic(args.payload_kb, fps=args.fps),
                  **{n: workload.from_sequence(sequence, args.payload_kb, n) for n in names}}
-        running = {"echo": servers.start_echo()}
+        running = {"echo": servers.start_echo(cpus=server_cpus)}
         try:
             for n in names:
-                running[n] = servers.start_serve(serve_args, n, log_path=out / f"{n}_server.log")
+                running[n] = servers.start_serve(serve_args, n, log_path=out / f"{n}_server.log", cpus=server_cpus)
             # Rounds alternate the order of the backends, so that load from elsewhere on the machine falls
             # on all of them alike; each backend's figure is the median over the rounds.
             rounds: dict[str, list[dict]] = {n: [] for n in running}
@@ -127,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
             capacity = max(1, results["backends"][n]["capacity_clients"])
             max_streams = max(1, int(args.stream_headroom * capacity))
             server = servers.start_serve([*serve_args, "--max-streams", str(max_streams)], n,
-                                         log_path=out / f"{n}_server.log")
+                                         log_path=out / f"{n}_server.log", cpus=server_cpus)
             try:
                 spec = replace(base, targets=(server.address,), await_admission=True)
                 overload = _overload(n, spec, works[n], 2 * capacity, server, out)

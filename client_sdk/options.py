@@ -62,6 +62,18 @@ class TrackerOptions:
     the pose is still applied, velocity and biases are left alone."""
     bscm_max_rotation_rate: float = 0.5
     """Likewise for a rotation drift rate |d_theta| / dt above this, rad/s."""
+    max_speed_m_s: float = 3.0
+    """The velocity set outright from two backend poses after a PRM reset must be below this (m/s; a
+    hand-held device moves far slower). A faster V_avg means one of the two poses is wrong: the
+    velocity is left alone and the PRM reset again, instead of propagating at that speed."""
+    backend_gate_px: float = 0.0
+    """0: every backend pose is applied (the paper trusts the backend). Above 0: while the tracker
+    is FINE with a known velocity, a backend pose whose 3D-box corners project farther than this on
+    average (px) from the propagated pose's at the capture time is GATED (ignored; a new request
+    goes out): a vision backend's gross error (a flipped pose) would otherwise be applied."""
+    backend_gate_rejects: int = 2
+    """This many consecutive gated poses are taken to mean the tracker, not the backend, is wrong:
+    the next one is applied whatever it says."""
     bscm_min_interval_s: float = 0.005
     bscm_max_interval_s: float = 1.0
     """BSCM runs only when the backend pose is this far from its reference (short: division by ~0;
@@ -117,11 +129,11 @@ def preset(name: str) -> TrackerOptions:
     """Named option sets. "paper": the paper's PRM (each backend pose resets the state; BSCM with the
     damped default gains). "ours": the backend pose blended in half way (`pose_gain` 0.5: a fixed-gain
     complementary filter that averages a noisy backend over ~3 responses instead of resetting to
-    it) and the biases averaged over ~5-10 s (gains 0.005 gyro, 0.01 accel at ~20 responses/s): IMU
+    it), gross backend errors gated (`backend_gate_px` 50) and the biases averaged over ~5-10 s (gains 0.005 gyro, 0.01 accel at ~20 responses/s): IMU
     biases drift over minutes, while one noisy response's rotation drift / dt is noisy by ~0.1 rad/s
     and V_bias / dt by ~1.7 m/s^2. docs/tracker.md has the sweep."""
     if name == "paper":
         return TrackerOptions()
     if name == "ours":
-        return TrackerOptions(pose_gain=0.5, gyro_bias_gain=0.005, accel_bias_gain=0.01)
+        return TrackerOptions(pose_gain=0.5, gyro_bias_gain=0.005, accel_bias_gain=0.01, backend_gate_px=50.0)
     raise ValueError(f"unknown tracker preset {name!r}: 'paper' or 'ours'")

@@ -52,6 +52,7 @@ class ResponseOutcome(enum.Enum):
     INITIALIZED = "initialized"  # the first backend pose started tracking
     APPLIED = "applied"  # state reset at the capture time, BSCM run, IMU re-propagated
     REJECTED = "rejected"  # the backend found no pose (ok=False); a new request goes out
+    GATED = "gated"  # the pose disagrees with the tracked one beyond `backend_gate_px`: ignored, asked again
     STALE = "stale"  # not the request in flight (abandoned by a PRM reset, or unknown): ignored
     TOO_OLD = "too_old"  # the capture time is older than the IMU buffer: dropped
 

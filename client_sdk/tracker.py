@@ -17,17 +17,22 @@ orientation and position, the one after it sets the velocity outright from the t
 carried to the capture time, biases untouched), and regular BSCM resumes with the third; a request in flight that was sent regularly is abandoned (its response will be
 STALE) and a new request for the failing frame goes out at once (reason "failure"); a request that
 was itself sent because of a failure is kept, so a run of failing frames sends one request at a
-time. The biases and gravity are kept: they belong to the IMU, not to the pose. A backend pose
+time. The reset happens once, on entering a failure: frames that go on failing do not reset it
+again, so the poses that arrive meanwhile can re-estimate the velocity (resetting at every failing
+frame would keep a wrong velocity, and with it the failure, for ever). The biases and gravity are
+kept: they belong to the IMU, not to the pose. A backend pose
 that disagrees with the IMU beyond belief (`bscm_max_velocity_error`, `bscm_max_rotation_rate`)
 is still applied (the paper trusts the backend; the PIM catches it if it is wrong) but resets the
-PRM in the same way instead of feeding BSCM.
+PRM in the same way instead of feeding BSCM; so does a velocity set outright from two poses that
+implies more than `max_speed_m_s`. With `backend_gate_px` set, a pose far from the tracked one
+while tracking is FINE is not applied at all (GATED), up to `backend_gate_rejects` in a row.
 """
 
 from __future__ import annotations
 
 import operator
 from dataclasses import dataclass
-from math import isfinite
+from math import isfinite, sqrt
 
 import numpy as np
 
@@ -111,6 +116,8 @@ class Tracker:
         self._last_frame_t: int | None = None
         self._last_uv: np.ndarray | None = None
         self._corrected = False  # a backend pose was applied since the last frame
+        self._failing = False  # the last frame failed the PIA (the PRM was reset on entering that)
+        self._gated = 0  # backend poses gated in a row
         self.status = Status.INITIALIZING
         self.status_detail = "initializing: waiting for IMU samples"
         self.last_bscm: BscmResult | None = None
@@ -239,10 +246,11 @@ class Tracker:
         else:
             status, detail = Status.FINE, "tracking"
         failed = status is not Status.FINE
-        if failed:  # the PIM re-initialises the PRM (module doc)
+        if failed and not self._failing:  # entering a failure: the PIM re-initialises the PRM (module doc)
             self._ref, self._velocity_known = None, False
             if self._book.in_flight is not None and self._book.in_flight.reason != "failure":
                 self._book.in_flight = None
+        self._failing = failed
         request = None
         if self.options.backend_after_init and self._book.in_flight is None:
             request = self._book.issue(t, "failure" if failed else "refine")
@@ -321,6 +329,12 @@ class Tracker:
             x_imu = self._state_at(t0)
             v = x_imu[12:15]
             o = self.options
+            jump = self._gate_distance(x_imu, T_CO)
+            if jump is not None:
+                self._gated += 1
+                return self._outcome(ResponseOutcome.GATED, f"backend pose {jump:.0f} px from the tracked pose: "
+                                     f"ignored ({self._gated} in a row)")
+            self._gated = 0
             reset = keep_ref = False
             if o.bscm and self._ref is not None:
                 t_ref, p_ref = self._ref
@@ -330,21 +344,26 @@ class Tracker:
                 # noise is the backend's position noise / dt) always spans at least that baseline
                 keep_ref = dt < o.bscm_min_interval_s
                 if o.bscm_min_interval_s <= dt <= o.bscm_max_interval_s and x_mid is not None:
+                    p_vel = _rot(x_imu, u) if o.bscm_imu_orientation else p
+                    speed = sqrt(sum((p_vel[k] - p_ref[k]) ** 2 for k in range(3))) / dt
                     if self._velocity_known:
                         gains = (o.gyro_bias_gain, o.accel_bias_gain, o.velocity_gain, o.bscm_max_velocity_error,
                                  o.bscm_max_rotation_rate)
                     else:  # first BSCM after a PRM reset: velocity outright from the two poses, biases kept
                         gains = (0.0, 0.0, 1.0, float("inf"), float("inf"))
-                    p_vel = _rot(x_imu, u) if o.bscm_imu_orientation else p
-                    res = bscm(self._c, x_imu, R, p_vel, p_ref, x_mid, dt, gains[0], gains[1], gains[2],
-                               o.max_gyro_bias, o.max_accel_bias, gains[3], gains[4],
-                               dt_rot=(t0 - self._anchor_t) * 1e-9)
-                    self.last_bscm = res
-                    if res.accepted:
-                        self._c, v, self._velocity_known = res.c, res.v, True
-                    else:  # backend and IMU disagree beyond belief: reset the PRM, keep the pose
+                    if not self._velocity_known and speed > o.max_speed_m_s:
                         reset = True
-                        detail = "backend pose disagrees with the IMU: BSCM skipped, PRM reset"
+                        detail = f"two backend poses imply {speed:.1f} m/s: one is wrong; PRM reset"
+                    else:
+                        res = bscm(self._c, x_imu, R, p_vel, p_ref, x_mid, dt, gains[0], gains[1], gains[2],
+                                   o.max_gyro_bias, o.max_accel_bias, gains[3], gains[4],
+                                   dt_rot=(t0 - self._anchor_t) * 1e-9)
+                        self.last_bscm = res
+                        if res.accepted:
+                            self._c, v, self._velocity_known = res.c, res.v, True
+                        else:  # backend and IMU disagree beyond belief: reset the PRM, keep the pose
+                            reset = True
+                            detail = "backend pose disagrees with the IMU: BSCM skipped, PRM reset"
             R_set, p_set = blend_pose(x_imu, R, p, o.pose_gain)
             self._anchor_t, self._anchor_x = t0, R_set + p_set + tuple(v)
             # the reference for the next V_avg, in the same terms as p_vel will be then
@@ -355,6 +374,18 @@ class Tracker:
             self._corrected = True
         propagate(self._step, self._anchor_x, self._c, t0, buf.samples, buf.states, buf.index_at_or_before(t0) + 1)
         return self._outcome(outcome, detail)
+
+    def _gate_distance(self, x_imu: tuple, T_CO: list[float]) -> float | None:
+        """The mean box-corner distance (px) between the backend's pose and the tracked one at the
+        capture time when the backend gate should ignore the pose, else None."""
+        o = self.options
+        if not (o.backend_gate_px > 0 and self.status is Status.FINE and self._velocity_known
+                and self._gated < o.backend_gate_rejects):
+            return None
+        uv_tracked = self.inspector.project(self._T_CO(x_imu))
+        uv_backend = self.inspector.project(np.array(T_CO).reshape(4, 4))
+        jump = float(np.mean(np.linalg.norm(uv_backend - uv_tracked, axis=1)))
+        return None if jump <= o.backend_gate_px else jump
 
     def _body_pose(self, m: list[float]) -> tuple[tuple, tuple, tuple]:
         """(R_OB, p_OB, u) as float tuples of T_OB = T_CO^-1 T_CB, T_CO given as 16 row-major floats;

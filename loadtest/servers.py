@@ -3,6 +3,7 @@ child process of its own (a server that shared the load generator's process woul
 
 from __future__ import annotations
 
+import os
 import socket
 import subprocess
 import sys
@@ -49,6 +50,26 @@ class ServerProcess:
         return self.process.returncode
 
 
+def parse_cpus(text: str | None) -> set[int] | None:
+    """"0" or "1,2" -> a CPU set; None or "" -> None (no pinning). ValueError for CPUs this machine lacks."""
+    if not text:
+        return None
+    cpus = {int(c) for c in text.split(",") if c.strip()}
+    missing = cpus - os.sched_getaffinity(0)
+    if missing:
+        raise ValueError(f"CPUs {sorted(missing)} are not available here (have {sorted(os.sched_getaffinity(0))})")
+    return cpus
+
+
+def pin(pid: int, cpus: set[int] | None) -> None:
+    """Restrict every thread of process `pid` (0: this one) to `cpus` (Linux), so that a server and its
+    load generator do not take turns on the same cores; threads started later inherit it."""
+    if not cpus:
+        return
+    for tid in os.listdir(f"/proc/{pid or os.getpid()}/task"):
+        os.sched_setaffinity(int(tid), cpus)
+
+
 def wait_serving(address: str, timeout_s: float = 60.0, process: subprocess.Popen | None = None) -> None:
     """Block until the gRPC health service at `address` says SERVING."""
     deadline = time.monotonic() + timeout_s
@@ -68,8 +89,9 @@ def wait_serving(address: str, timeout_s: float = 60.0, process: subprocess.Pope
 
 
 def start_serve(serve_args: list[str], name: str = "flextrack", port: int | None = None,
-                log_path: Path | None = None) -> ServerProcess:
-    """`flextrack serve --host 127.0.0.1 --port P ARGS...` in a child process, returned once SERVING."""
+                log_path: Path | None = None, cpus: set[int] | None = None) -> ServerProcess:
+    """`flextrack serve --host 127.0.0.1 --port P ARGS...` in a child process, returned once SERVING
+    (and pinned to `cpus`, when given)."""
     port = port or free_port()
     address = f"127.0.0.1:{port}"
     command = [sys.executable, "-m", "flextrack", "serve", "--host", "127.0.0.1", "--port", str(port), *serve_args]
@@ -80,6 +102,7 @@ def start_serve(serve_args: list[str], name: str = "flextrack", port: int | None
         process = subprocess.Popen(command, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     server = ServerProcess(name, address, process)
     try:
+        pin(process.pid, cpus)
         wait_serving(address, process=process)
     except BaseException:
         server.stop()
@@ -87,11 +110,12 @@ def start_serve(serve_args: list[str], name: str = "flextrack", port: int | None
     return server
 
 
-def start_echo(port: int | None = None) -> ServerProcess:
+def start_echo(port: int | None = None, cpus: set[int] | None = None) -> ServerProcess:
     """The no-op echo servicer in a child process (it has no health service: wait for ListEstimators)."""
     port = port or free_port()
     address = f"127.0.0.1:{port}"
     process = subprocess.Popen([sys.executable, "-c", ECHO_MAIN, str(port)], cwd=REPO)
+    pin(process.pid, cpus)
     from flextrack.v1 import pose_estimation_pb2 as pb
     from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
 

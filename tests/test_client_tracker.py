@@ -10,7 +10,7 @@ from benchmarks.tracker_world import BOX_O, CAMERA, T_BC, Motion, drive
 from client_sdk import ResponseOutcome, Status, Tracker, TrackerOptions
 from client_sdk import state as state_codec
 from client_sdk.propagation import propagate, step_paper
-from flextrack.geometry import se3
+from flextrack.geometry import se3, so3
 from flextrack.geometry.metrics import proj_px
 
 MS = 1_000_000
@@ -266,3 +266,95 @@ def test_a_silent_backend_turns_the_pose_lost_and_a_fresh_pose_brings_it_back():
     tr.on_backend_response(req.request_id, req.frame_t_ns, T_CO_0)
     _still(tr, 605, 3000)
     assert tr.add_frame(3000 * MS).status is Status.FINE
+
+
+def _serve(tr, t_from_ms, t_to_ms, answer=lambda t_ms: T_CO_0, latency_ms=50):
+    """Still IMU, a frame every 10 ms, each request answered `latency_ms` later with answer(capture ms)."""
+    pending, statuses = [], []
+    for t in range(t_from_ms, t_to_ms + 1, 10):
+        _still(tr, t - 5, t)
+        for due, req in [p for p in pending if p[0] <= t]:
+            pending.remove((due, req))
+            tr.on_backend_response(req.request_id, req.frame_t_ns, answer(req.frame_t_ns // MS))
+        r = tr.add_frame(t * MS)
+        statuses.append(r.status)
+        if r.request is not None:
+            pending.append((t + latency_ms, r.request))
+    return statuses
+
+
+SHIFTED = se3.make(np.eye(3), np.array([0.6, 0.0, 0.6]))  # 0.6 m to the side of T_CO_0
+
+
+def _respond(tr, t_ms, T_CO):
+    _still(tr, t_ms - 95, t_ms)
+    req = tr.add_frame(t_ms * MS).request
+    return tr.on_backend_response(req.request_id, req.frame_t_ns, T_CO)
+
+
+def test_two_poses_implying_an_impossible_speed_do_not_set_the_velocity():
+    tr = _initialised()  # still, T_CO_0 at 600 ms
+    _respond(tr, 700, SHIFTED)  # disagrees with the IMU beyond belief: applied, PRM reset
+    assert "disagrees" in tr.status_detail
+    _respond(tr, 800, T_CO_0)  # the new BSCM reference
+    _respond(tr, 900, SHIFTED)  # 0.6 m in 0.1 s: 6 m/s from two poses, one of them wrong
+    assert "imply 6.0 m/s" in tr.status_detail
+    assert np.linalg.norm(tr.state.v_OB) < 0.1
+    # without the limit the velocity would have been set to 6 m/s
+    tr = _tracker(max_speed_m_s=100.0)
+    _still(tr, 5, 600)
+    req = tr.add_frame(600 * MS).request
+    tr.on_backend_response(req.request_id, req.frame_t_ns, T_CO_0)
+    for t, T in ((700, SHIFTED), (800, T_CO_0), (900, SHIFTED)):
+        _respond(tr, t, T)
+    assert np.linalg.norm(tr.state.v_OB) > 5.0
+
+
+def test_a_wrong_velocity_is_re_estimated_while_the_frames_keep_failing():
+    """Frames that go on failing must not keep resetting the PRM, or the velocity is never fixed."""
+    tr = _tracker(max_speed_m_s=100.0)
+    _still(tr, 5, 600)
+    req = tr.add_frame(600 * MS).request
+    tr.on_backend_response(req.request_id, req.frame_t_ns, T_CO_0)
+    for t, T in ((700, SHIFTED), (800, T_CO_0), (900, SHIFTED)):
+        _respond(tr, t, T)  # leaves a 6 m/s velocity on a still device
+    statuses = _serve(tr, 910, 1600)
+    assert statuses[0] is not Status.FINE  # the wrong velocity is caught ...
+    assert set(statuses[-20:]) == {Status.FINE}  # ... and fixed by the poses that follow
+    assert proj_px(tr.pose_at(1600 * MS), T_CO_0, CAMERA, BOX_O) < 1.0
+
+
+def _flipped(T_CO):
+    """The pose turned 108 degrees about the object's own z axis: a vision backend's gross error."""
+    return T_CO @ se3.make(so3.exp(np.array([0.0, 0.0, np.radians(108.0)])), np.zeros(3))
+
+
+def test_the_backend_gate_ignores_a_flipped_pose_and_gives_way_to_a_persistent_one():
+    m = Motion()
+    flips = {"n": 0}
+
+    def one_flip(t):
+        if t > 2.0 and flips["n"] == 0:
+            flips["n"] = 1
+            return _flipped(m.T_CO(t))
+        return m.T_CO(t)
+
+    gated = drive(m, TrackerOptions(backend_gate_px=50.0), duration_s=3.0, answer=one_flip)
+    assert gated.tracker.outcomes[ResponseOutcome.GATED] == 1
+    assert set(gated.statuses) == {Status.INITIALIZING, Status.FINE}
+    flips["n"] = 0
+    trusting = drive(m, TrackerOptions(), duration_s=3.0, answer=one_flip)  # the paper: applied
+    assert trusting.tracker.outcomes[ResponseOutcome.GATED] == 0
+
+    def worst(run):
+        return max(proj_px(T, m.T_CO(t * 1e-9), CAMERA, BOX_O) for t, T in zip(run.times_ns, run.poses)
+                   if T is not None)
+
+    assert worst(gated) < 1.0 and worst(trusting) > 20.0  # the PIA cannot see a pose set wrong
+    for run in (gated, trusting):
+        assert proj_px(run.poses[-1], m.T_CO(run.times_ns[-1] * 1e-9), CAMERA, BOX_O) < 0.5
+    # a backend that keeps saying the same is believed after backend_gate_rejects poses
+    moved = drive(m, TrackerOptions(backend_gate_px=50.0), duration_s=3.0,
+                  answer=lambda t: _flipped(m.T_CO(t)) if t > 2.0 else m.T_CO(t))
+    assert moved.tracker.outcomes[ResponseOutcome.GATED] == 2
+    assert proj_px(moved.poses[-1], _flipped(m.T_CO(moved.times_ns[-1] * 1e-9)), CAMERA, BOX_O) < 2.0
