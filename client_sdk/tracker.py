@@ -72,6 +72,12 @@ def _rot(R: tuple, u: tuple) -> tuple:
             R[6] * u[0] + R[7] * u[1] + R[8] * u[2])
 
 
+def _rot_t(R: tuple, u: tuple) -> tuple:
+    """R^T u for R the first 9 floats (row-major) of a tuple."""
+    return (R[0] * u[0] + R[3] * u[1] + R[6] * u[2], R[1] * u[0] + R[4] * u[1] + R[7] * u[2],
+            R[2] * u[0] + R[5] * u[1] + R[8] * u[2])
+
+
 def _check_rigid(T, name: str) -> list[float]:
     """The 16 entries (row-major) of a rigid 4x4 transform; ValueError otherwise. Plain-float checks:
     this runs on every backend response, where numpy's allclose/det would cost tens of microseconds."""
@@ -330,13 +336,17 @@ class Tracker:
             v = x_imu[12:15]
             o = self.options
             jump = self._gate_distance(x_imu, T_CO)
-            if jump is not None:
+            if jump is not None and self._gated < o.backend_gate_rejects:
                 self._gated += 1
                 return self._outcome(ResponseOutcome.GATED, f"backend pose {jump:.0f} px from the tracked pose: "
                                      f"ignored ({self._gated} in a row)")
+            # The gate gives way: the backend keeps disagreeing, so the tracker is the one that is wrong,
+            # most likely since a wrong first pose. Its gravity came from that pose's orientation: it
+            # follows the correction (the body-frame gravity, which the IMU measured, is kept).
+            regravitate = reset = jump is not None
             self._gated = 0
-            reset = keep_ref = False
-            if o.bscm and self._ref is not None:
+            keep_ref = False
+            if o.bscm and self._ref is not None and not regravitate:
                 t_ref, p_ref = self._ref
                 dt = (t0 - t_ref) * 1e-9
                 x_mid = self._state_at((t_ref + t0) // 2)
@@ -365,6 +375,10 @@ class Tracker:
                             reset = True
                             detail = "backend pose disagrees with the IMU: BSCM skipped, PRM reset"
             R_set, p_set = blend_pose(x_imu, R, p, o.pose_gain)
+            if regravitate:  # the whole pose; the velocity, propagated with the wrong gravity, starts again at 0
+                R_set, p_set, v = R, p, (0.0, 0.0, 0.0)
+                self._c = self._c[0:6] + _rot(R_set, _rot_t(x_imu, self._c[6:9]))
+                detail = "the backend kept disagreeing: its pose applied, gravity re-anchored, PRM reset"
             self._anchor_t, self._anchor_x = t0, R_set + p_set + tuple(v)
             # the reference for the next V_avg, in the same terms as p_vel will be then
             if not keep_ref:
@@ -377,10 +391,9 @@ class Tracker:
 
     def _gate_distance(self, x_imu: tuple, T_CO: list[float]) -> float | None:
         """The mean box-corner distance (px) between the backend's pose and the tracked one at the
-        capture time when the backend gate should ignore the pose, else None."""
+        capture time when it is beyond the backend gate (and the gate applies), else None."""
         o = self.options
-        if not (o.backend_gate_px > 0 and self.status is Status.FINE and self._velocity_known
-                and self._gated < o.backend_gate_rejects):
+        if not (o.backend_gate_px > 0 and self.status is Status.FINE and self._velocity_known):
             return None
         uv_tracked = self.inspector.project(self._T_CO(x_imu))
         uv_backend = self.inspector.project(np.array(T_CO).reshape(4, 4))

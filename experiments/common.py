@@ -28,6 +28,10 @@ from runners.session import model_vertices
 PAPER_FAITHFUL = preset("paper")
 OURS = preset("ours")
 TRACKER_VARIANTS = {"paper": PAPER_FAITHFUL, "ours": OURS}
+VARIANT_TITLES = {
+    "ours": "ours (pose_gain 0.5, gyro_bias_gain 0.005, accel_bias_gain 0.01, backend_gate_px 50)",
+    "paper": "paper-faithful (each backend pose resets the state; BSCM with the damped default gains)",
+}
 
 
 @dataclass(frozen=True)

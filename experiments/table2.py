@@ -67,17 +67,11 @@ def _cells(rows: list[list]) -> dict[tuple, np.ndarray]:
     return {k: np.array(v) for k, v in cells.items()}
 
 
-VARIANT_TITLES = {
-    "ours": "ours (pose_gain 0.5, velocity_gain 0.25, gyro_bias_gain 0.02, bscm_min_interval_s 0.1)",
-    "paper": "paper-faithful (each backend pose resets the state; BSCM with the damped default gains)",
-}
-
-
 def report(rows: list[list], seeds: list[int], duration_s: float, in_process: bool,
            fine: dict[tuple, list[float]], variant: str = "ours", suffix: str = "") -> str:
     cells = _cells(rows)
     lines = [
-        f"# Table 2 rerun, tracker {VARIANT_TITLES.get(variant, variant)}", "",
+        f"# Table 2 rerun, tracker {common.VARIANT_TITLES.get(variant, variant)}", "",
         (f"Seeds {seeds}; {duration_s:g} s sequences; backend {'in-process' if in_process else 'a real gRPC server on loopback'}; "
         "network 50 Mbps, 10 ms each way, U(0, 30) ms, 100 kB a request; Pixel 2 slowdown 2.46; "
         f"Noisy backend: 3 mm and 0.3 deg per axis (the paper gives no sigma)."), "",

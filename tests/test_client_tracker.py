@@ -6,7 +6,7 @@ import sys
 import numpy as np
 import pytest
 
-from benchmarks.tracker_world import BOX_O, CAMERA, T_BC, Motion, drive
+from benchmarks.tracker_world import BOX_O, CAMERA, G_O, T_BC, Motion, drive
 from client_sdk import ResponseOutcome, Status, Tracker, TrackerOptions
 from client_sdk import state as state_codec
 from client_sdk.propagation import propagate, step_paper
@@ -358,3 +358,20 @@ def test_the_backend_gate_ignores_a_flipped_pose_and_gives_way_to_a_persistent_o
                   answer=lambda t: _flipped(m.T_CO(t)) if t > 2.0 else m.T_CO(t))
     assert moved.tracker.outcomes[ResponseOutcome.GATED] == 2
     assert proj_px(moved.poses[-1], _flipped(m.T_CO(moved.times_ns[-1] * 1e-9)), CAMERA, BOX_O) < 2.0
+
+
+def test_a_wrong_first_pose_is_overruled_and_gravity_re_anchored():
+    """Initialised from a flipped pose, the tracker's gravity is wrong too; once the gate gives way to
+    the backend's consistent answers, both are set right and tracking comes back."""
+    m = Motion()
+    first = {"t": None}
+
+    def flipped_first(t):
+        first["t"] = first["t"] or t
+        return _flipped(m.T_CO(t)) if t == first["t"] else m.T_CO(t)
+
+    run = drive(m, TrackerOptions(backend_gate_px=50.0), duration_s=4.0, answer=flipped_first)
+    assert run.tracker.outcomes[ResponseOutcome.GATED] >= 1
+    g_O = run.tracker.state.g_O
+    assert np.degrees(np.arccos(np.clip(g_O @ G_O / (np.linalg.norm(g_O) * np.linalg.norm(G_O)), -1, 1))) < 1.0
+    assert proj_px(run.poses[-1], m.T_CO(run.times_ns[-1] * 1e-9), CAMERA, BOX_O) < 1.0

@@ -69,3 +69,26 @@ def test_euroc_writes_the_agreed_csv(tmp_path):
     rows = _csv(out / "euroc.csv")
     assert list(rows[0]) == ["variant", "pos_mm", "ori_deg", "proj_px"]
     assert [r["variant"] for r in rows] == ["full", "bscm_off", "ours"]
+
+
+def test_table2_with_the_pvnet_backend_renders_frames_and_reports_beside_the_oracle(tmp_path):
+    pytest.importorskip("onnxruntime")
+    from experiments import table2_vision
+
+    out = tmp_path / "t2v"
+    rows = table2_vision.run(out, "pvnet", [0], duration_s=1.5, fps_list=(30,), motions=("translational",))
+    assert {(r[0], r[4]) for r in rows} == {(v, b) for v in ("ours", "paper") for b in ("gt_oracle", "pvnet")}
+    assert all(r[8] < 1.0 for r in rows if r[4] == "gt_oracle")  # the oracle rows: the tracker works
+    pvnet = [r for r in rows if r[4] == "pvnet"]
+    assert all(r[10] > 0 for r in pvnet)  # requests went out with rendered frames
+    seq_dir = next((out / "sequences").iterdir())
+    assert any((seq_dir / "rgb").iterdir())  # the frames the PRM sent were rendered
+    csv_rows = _csv(out / "table2_pvnet.csv")
+    assert list(csv_rows[0]) == table2_vision.HEADER and len(csv_rows) == 2
+    text = (out / "table2_pvnet.md").read_text()
+    assert "| pvnet | 30 |" in text and "goal 5" in text
+
+
+def test_table2_with_an_unknown_backend_says_what_the_config_serves(tmp_path, capsys):
+    assert main(["experiment", "table2", "--backend", "nope", "--out", str(tmp_path / "x"), "--duration", "1"]) == 2
+    assert "must serve 'nope'" in capsys.readouterr().err
