@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 INTEGRATORS = ("paper", "midpoint")
 
@@ -74,6 +74,15 @@ class TrackerOptions:
     backend_gate_rejects: int = 2
     """This many consecutive gated poses are taken to mean the tracker, not the backend, is wrong:
     the next one is applied whatever it says."""
+    gravity_follow: float = 0.0
+    """0: gravity in O (g_O) is fixed at initialisation (the paper). k > 0: at each backend correction
+    g_O moves a fraction k of the way to where the correction carries it, i.e. towards keeping the
+    gravity in the *body* frame (which the IMU measured at initialisation and the gyro has carried
+    since) unchanged. With g_O fixed, a backend orientation error d turns into a fake acceleration
+    of about 9.81 sin(d) m/s^2 until the next correction (0.3 deg: 0.05 m/s^2; a vision backend's
+    5-10 deg: 1-2 m/s^2, metres per second of velocity error within a second); with k near 1 the
+    error only tilts the true acceleration. Below 1, g_O stays anchored in the long run against
+    gyro drift."""
     bscm_min_interval_s: float = 0.005
     bscm_max_interval_s: float = 1.0
     """BSCM runs only when the backend pose is this far from its reference (short: division by ~0;
@@ -114,8 +123,8 @@ class TrackerOptions:
                 continue
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{f.name} must be a finite number >= 0, got {value!r}")
-        if self.pose_gain > 1:
-            raise ValueError("pose_gain must be in [0, 1]")
+        if self.pose_gain > 1 or self.gravity_follow > 1:
+            raise ValueError("pose_gain and gravity_follow must be in [0, 1]")
         for name in ("area_divisor", "base_rate", "init_window_s", "imu_buffer_s"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be > 0")
@@ -129,11 +138,17 @@ def preset(name: str) -> TrackerOptions:
     """Named option sets. "paper": the paper's PRM (each backend pose resets the state; BSCM with the
     damped default gains). "ours": the backend pose blended in half way (`pose_gain` 0.5: a fixed-gain
     complementary filter that averages a noisy backend over ~3 responses instead of resetting to
-    it), gross backend errors gated (`backend_gate_px` 50) and the biases averaged over ~5-10 s (gains 0.005 gyro, 0.01 accel at ~20 responses/s): IMU
-    biases drift over minutes, while one noisy response's rotation drift / dt is noisy by ~0.1 rad/s
-    and V_bias / dt by ~1.7 m/s^2. docs/tracker.md has the sweep."""
+    it), gross backend errors gated (`backend_gate_px` 50), and the biases averaged over ~5-10 s
+    (gains 0.005 gyro, 0.01 accel at ~20 responses/s): IMU biases drift over minutes, while one
+    noisy response's rotation drift / dt is noisy by ~0.1 rad/s and V_bias / dt by ~1.7 m/s^2.
+    "vision": "ours" for a backend whose orientation is off by degrees (a learned network): gravity
+    kept in the body frame across corrections (`gravity_follow` 0.95), trusting the gyro over the
+    backend's orientation; with an accurate backend and an unestimated gyro bias that trust is
+    misplaced (a GT backend's error grows several-fold). docs/tracker.md has the sweeps."""
     if name == "paper":
         return TrackerOptions()
     if name == "ours":
         return TrackerOptions(pose_gain=0.5, gyro_bias_gain=0.005, accel_bias_gain=0.01, backend_gate_px=50.0)
-    raise ValueError(f"unknown tracker preset {name!r}: 'paper' or 'ours'")
+    if name == "vision":
+        return replace(preset("ours"), gravity_follow=0.95)
+    raise ValueError(f"unknown tracker preset {name!r}: 'paper', 'ours' or 'vision'")

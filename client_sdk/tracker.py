@@ -379,6 +379,12 @@ class Tracker:
                 R_set, p_set, v = R, p, (0.0, 0.0, 0.0)
                 self._c = self._c[0:6] + _rot(R_set, _rot_t(x_imu, self._c[6:9]))
                 detail = "the backend kept disagreeing: its pose applied, gravity re-anchored, PRM reset"
+            elif o.gravity_follow > 0:  # towards the body-frame gravity kept (TrackerOptions.gravity_follow)
+                g_new = _rot(R_set, _rot_t(x_imu, self._c[6:9]))
+                k = o.gravity_follow
+                g = tuple((1 - k) * self._c[6 + i] + k * g_new[i] for i in range(3))
+                n = sqrt(sum(e * e for e in g)) / sqrt(sum(e * e for e in self._c[6:9]))
+                self._c = self._c[0:6] + tuple(e / n for e in g)
             self._anchor_t, self._anchor_x = t0, R_set + p_set + tuple(v)
             # the reference for the next V_avg, in the same terms as p_vel will be then
             if not keep_ref:

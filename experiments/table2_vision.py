@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from client_sdk.network_model import NetworkOptions
+from client_sdk.options import preset
 from estimators.gt_oracle import GtOracleEstimator
 from estimators.registry import EstimatorRegistry
 from experiments import common, paper
@@ -29,7 +30,7 @@ LIMIT_PX = 5.0  # the goal for a vision backend on these cells (issue 5)
 
 def run(out: Path, backend: str, seeds: list[int], duration_s: float = 10.0, fps_list=(30, 120),
         motions=paper.MOTIONS, levels=("medium",), config: Path = DEFAULT_CONFIG, backend_ms: float = 80.0,
-        variants=tuple(common.TRACKER_VARIANTS)) -> list[list]:
+        variants=("ours", "vision")) -> list[list]:
     """Rows (HEADER) of every variant, `ORACLE` and `backend` per cell; writes table2_<backend>.md/.csv."""
     registry = EstimatorRegistry.from_config(config)
     if backend not in registry.names() or ORACLE not in registry.names():
@@ -49,14 +50,14 @@ def run(out: Path, backend: str, seeds: list[int], duration_s: float = 10.0, fps
                                            backend_compute_ms=backend_ms if name == backend else 0.0,
                                            config=config, frames=name != ORACLE)
                     for variant in variants:
-                        s = session.track(seq, common.TRACKER_VARIANTS[variant], spec, registry=registry).summarize()
+                        s = session.track(seq, preset(variant), spec, registry=registry).summarize()
                         fine = 100.0 * s.status_counts.get("FINE", 0) / max(1, s.frames)
                         rows.append([variant, motion, level, fps, name, seed, s.pos_mm, s.ori_deg, s.proj_px, fine,
                                      s.requests])
                         bar.set_postfix_str(f"{motion}/{level}/{fps}/{name}/{variant}: {s.proj_px:.2f} px")
                         bar.update()
     for variant in variants:
-        suffix = "" if variant == "ours" else f"_{variant}"
+        suffix = "" if variant == variants[0] else f"_{variant}"
         common.write_csv(out / f"table2_{backend}{suffix}.csv", HEADER, [r[1:] for r in rows if r[0] == variant])
     text = "\n".join(report([r for r in rows if r[0] == v], backend, seeds, duration_s, backend_ms, config, v)
                      for v in variants)

@@ -77,7 +77,7 @@ def test_table2_with_the_pvnet_backend_renders_frames_and_reports_beside_the_ora
 
     out = tmp_path / "t2v"
     rows = table2_vision.run(out, "pvnet", [0], duration_s=1.5, fps_list=(30,), motions=("translational",))
-    assert {(r[0], r[4]) for r in rows} == {(v, b) for v in ("ours", "paper") for b in ("gt_oracle", "pvnet")}
+    assert {(r[0], r[4]) for r in rows} == {(v, b) for v in ("ours", "vision") for b in ("gt_oracle", "pvnet")}
     assert all(r[8] < 1.0 for r in rows if r[4] == "gt_oracle")  # the oracle rows: the tracker works
     pvnet = [r for r in rows if r[4] == "pvnet"]
     assert all(r[10] > 0 for r in pvnet)  # requests went out with rendered frames
