@@ -55,7 +55,7 @@ class PvnetEstimator(Estimator):
     def __init__(self, objects: ObjectRegistry, model_path: str | Path, name: str = "pvnet", object_ids=(),
                  min_mask_px: int = 12, zoom: bool = True, zoom_size: int = 128, zoom_object_px: float = 64.0,
                  full_resolution_search: bool = True, near_box_px: float = 50.0, candidates: int = 3,
-                 hypotheses: int = 64, cos_threshold: float = 0.99, ransac_px: float = 8.0, seed: int = 0,
+                 candidate_share: float = 0.25, min_confidence: float = 0.1, hypotheses: int = 64, cos_threshold: float = 0.99, ransac_px: float = 8.0, seed: int = 0,
                  device: str = "auto", threads: int = 0):
         import onnxruntime as ort
 
@@ -83,7 +83,8 @@ class PvnetEstimator(Estimator):
         self.min_mask_px = int(min_mask_px)
         self.zoom, self.zoom_size, self.zoom_object_px = bool(zoom), int(zoom_size), float(zoom_object_px)
         self.full_resolution_search, self.near_box_px = bool(full_resolution_search), float(near_box_px)
-        self.candidates = int(candidates)
+        self.candidates, self.candidate_share = int(candidates), float(candidate_share)
+        self.min_confidence = float(min_confidence)
         self.voting = VotingConfig(hypotheses=int(hypotheses), cos_threshold=float(cos_threshold))
         self.seed = int(seed)
         self._pnp = PnpEstimator(objects, name=f"{name}.pnp", object_ids=ids, ransac_px=ransac_px)
@@ -91,7 +92,7 @@ class PvnetEstimator(Estimator):
     @classmethod
     def from_spec(cls, spec) -> PvnetEstimator:
         spec.check_params({"min_mask_px", "zoom", "zoom_size", "zoom_object_px", "full_resolution_search",
-                           "near_box_px", "candidates", "hypotheses", "cos_threshold",
+                           "near_box_px", "candidates", "candidate_share", "min_confidence", "hypotheses", "cos_threshold",
                            "ransac_px", "seed", "device", "threads"})
         if spec.model is None:
             raise ValueError(f"estimator '{spec.name}' (kind pvnet) needs `model = \"path/to/pvnet.onnx\"`")
@@ -192,6 +193,9 @@ class PvnetEstimator(Estimator):
         if self.full_resolution_search and small:
             for i, f in zip(small, self._locate(self._run([images[i] for i in small]), 1)):
                 found[i] = f or found[i]
+        # A candidate far smaller than the largest is a blob of false mask (a table leg), and its few
+        # consistent votes can give a confident-looking pose: only those near the largest's size go on.
+        found = [[c for c in f if len(c[0]) >= self.candidate_share * len(f[0][0])] for f in found]
         fields = [[(c[0], c[1]) for c in f] for f in found]  # per frame, per candidate: the field voted on
         pairs = [(i, j) for i in range(n) for j in range(len(found[i]))]
         if self.zoom and pairs:
@@ -226,5 +230,8 @@ class PvnetEstimator(Estimator):
                 out.confidence = float(out.confidence * np.mean(inlier_ratio))
             if best is None or (out.status == Status.OK and (best.status != Status.OK or out.confidence > best.confidence)):
                 best = out
+        if best.status == Status.OK and best.confidence < self.min_confidence:
+            best = EstimateOutput(Status.OBJECT_NOT_FOUND, message=f"no confident pose (best {best.confidence:.2f} < "
+                                  f"min_confidence {self.min_confidence:g})")
         best.stage_ms = {"inference": inference_ms, "voting": voting_ms, "pnp": pnp_ms}
         return best

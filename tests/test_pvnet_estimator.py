@@ -3,6 +3,7 @@ model finding the default object's pose on a rendered frame."""
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -98,6 +99,35 @@ def test_shipped_model_finds_the_default_object(registry, rendered):
         assert {"inference", "voting", "pnp"} <= set(out.stage_ms)
     single = est.estimate(_input(rendered[1][0], 1))  # batching does not change the answer (beyond rounding)
     assert metrics.proj_px(single.T_CO, outs[1].T_CO, CAMERA, verts) < 0.5
+    # a pose less confident than min_confidence is no pose
+    doubtful = PvnetEstimator(registry, SHIPPED, min_confidence=1.0).estimate(_input(rendered[0][0], 0))
+    assert doubtful.status == Status.OBJECT_NOT_FOUND and "min_confidence" in doubtful.message
+
+
+@pytest.mark.skipif(not SHIPPED.is_file(), reason=f"no shipped model at {SHIPPED}")
+def test_a_false_blob_far_smaller_than_the_object_is_not_a_candidate(registry, rendered):
+    """A patch of the object pasted small into a corner makes a second mask blob; with candidate_share
+    it is dropped before voting, so only the object's own candidate is solved."""
+    import estimators.pvnet as pvnet_module
+
+    rgb, _ = rendered[0]
+    small = cv2.resize(rgb[150:330, 220:420], (50, 45), interpolation=cv2.INTER_AREA)
+    frame = rgb.copy()
+    frame[420:465, 10:60] = small
+    seen = []
+    solve = pvnet_module.PvnetEstimator._solve
+
+    def spy(self, inp, candidates, inference_ms):
+        seen.append(len(candidates))
+        return solve(self, inp, candidates, inference_ms)
+
+    pvnet_module.PvnetEstimator._solve = spy
+    try:
+        PvnetEstimator(registry, SHIPPED, candidate_share=0.0).estimate(_input(frame))
+        PvnetEstimator(registry, SHIPPED).estimate(_input(frame))
+    finally:
+        pvnet_module.PvnetEstimator._solve = solve
+    assert seen[0] >= 2 and seen[1] == 1
 
 
 def test_config_builds_a_pvnet_estimator(blind_model):
