@@ -143,12 +143,14 @@ def preset(name: str) -> TrackerOptions:
     noisy response's rotation drift / dt is noisy by ~0.1 rad/s and V_bias / dt by ~1.7 m/s^2.
     "vision": "ours" for a backend whose orientation is off by degrees (a learned network): gravity
     kept in the body frame across corrections (`gravity_follow` 0.95), trusting the gyro over the
-    backend's orientation; with an accurate backend and an unestimated gyro bias that trust is
-    misplaced (a GT backend's error grows several-fold). docs/tracker.md has the sweeps."""
+    backend's orientation, and no gyro-bias updates from BSCM (`gyro_bias_gain` 0: a rotation drift
+    measured against such a backend is noise, and the bias it wrote walked the body-frame gravity
+    off; the still initialisation's estimate is kept). With an accurate backend and a gyro bias
+    left to estimate, that trust is misplaced. docs/tracker.md has the sweeps."""
     if name == "paper":
         return TrackerOptions()
     if name == "ours":
         return TrackerOptions(pose_gain=0.5, gyro_bias_gain=0.005, accel_bias_gain=0.01, backend_gate_px=50.0)
     if name == "vision":
-        return replace(preset("ours"), gravity_follow=0.95)
+        return replace(preset("ours"), gravity_follow=0.95, gyro_bias_gain=0.0)
     raise ValueError(f"unknown tracker preset {name!r}: 'paper', 'ours' or 'vision'")

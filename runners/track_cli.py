@@ -14,6 +14,7 @@ from pathlib import Path
 
 from client_sdk import TrackerOptions
 from client_sdk.network_model import NetworkOptions
+from client_sdk.options import preset
 from client_sdk.slowdown import PIXEL2_FACTOR
 from datasets import sequence as sequence_io
 from runners import session
@@ -34,6 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--speed", type=float, default=1.0, help="with --live: play the sequence this much faster")
     parser.add_argument("--in-process", action="store_true", help="replay without gRPC (same results)")
     parser.add_argument("--fps", type=float, help="use the sequence's frames nearest to this rate (None: all of them)")
+    parser.add_argument("--preset", choices=("paper", "ours", "vision"), default="paper",
+                        help="tracker options (client_sdk.options.preset): paper, ours (noisy backends), vision "
+                        "(backends whose orientation is off by degrees, e.g. pvnet)")
     parser.add_argument("--no-bscm", action="store_true", help="ablation: no bias self-correction")
     parser.add_argument("--no-pia", action="store_true", help="ablation: no pose inspection")
     parser.add_argument("--imu-only", action="store_true", help="ablation: no backend after initialisation")
@@ -55,8 +59,8 @@ def network_options(kind: str, seed: int) -> NetworkOptions:
 
 
 def tracker_options(args) -> TrackerOptions:
-    return TrackerOptions(bscm=not args.no_bscm, pia=not args.no_pia, backend_after_init=not args.imu_only,
-                          integrator=args.integrator)
+    return replace(preset(args.preset), bscm=not args.no_bscm, pia=not args.no_pia,
+                   backend_after_init=not args.imu_only, integrator=args.integrator)
 
 
 def run(args) -> int:
