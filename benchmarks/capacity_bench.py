@@ -13,10 +13,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
+import sys
 import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
+
+import numpy as np
 
 from loadtest import ramp, report, runner, servers, workload
 
@@ -74,11 +78,19 @@ def _ramp(name: str, spec: runner.LoadSpec, work: workload.Workload, args, out: 
             "p99_ms_at_capacity": at_best["latency_all"]["p99_ms"] if at_best else None}
 
 
-def _overload(name: str, spec: runner.LoadSpec, work: workload.Workload, clients: int, server, out: Path) -> dict:
+def _overload(name: str, spec: runner.LoadSpec, work: workload.Workload, clients: int, server, out: Path,
+              probe_cpus: set[int] | None = None) -> dict:
+    # A lone probe process times refusals as one device sees them, apart from the load generator's loop.
+    probe = subprocess.Popen([sys.executable, "-m", "benchmarks.refusal_probe", server.address,
+                              str(spec.warmup_s + spec.duration_s)], cwd=servers.REPO, stdout=subprocess.PIPE, text=True)
+    servers.pin(probe.pid, probe_cpus)
     result = runner.run(replace(spec, clients=clients), work)
+    probed = json.loads(probe.communicate(timeout=30)[0] or "{}")
     summary = report.write_all(result, out / name, stem="overload")
     refused = [s.latency_ms for s in result.samples if s.outcome == "grpc:RESOURCE_EXHAUSTED"]
     print(f"{name}: overload at {clients} clients\n{report.format_summary(summary)}", flush=True)
+    print(f"  lone probe device: {len(probed.get('refused_ms', []))} refusals, "
+          f"p50/p99/max {_percentiles(probed.get('refused_ms', []))} ms, {probed.get('admitted')} admitted", flush=True)
     try:
         servers.wait_serving(server.address, timeout_s=5, process=server.process)
         up = True
@@ -87,8 +99,13 @@ def _overload(name: str, spec: runner.LoadSpec, work: workload.Workload, clients
     return {"clients": clients, "server_up_after": up, "ok_fps": summary["ok_fps"],
             "ok_p99_ms": summary["latency_ok"]["p99_ms"], "rejected_p99_ms": summary["latency_rejected"]["p99_ms"],
             "rejected_max_ms": max(refused) if refused else None,
+            "probe_refused_ms": _percentiles(probed.get("refused_ms", [])), "probe_admitted": probed.get("admitted"),
             "rejected_share": 1 - summary["outcomes"].get("OK", 0) / max(1, summary["answered"]),
             "outcomes": summary["outcomes"]}
+
+
+def _percentiles(values: list[float]) -> list[float] | None:
+    return [round(float(v), 2) for v in np.percentile(values, [50, 99, 100])] if values else None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -140,7 +157,7 @@ def run(args: argparse.Namespace) -> int:
                                          log_path=out / f"{n}_server.log", cpus=server_cpus)
             try:
                 spec = replace(base, targets=(server.address,), await_admission=True)
-                overload = _overload(n, spec, works[n], 2 * capacity, server, out)
+                overload = _overload(n, spec, works[n], 2 * capacity, server, out, client_cpus)
             finally:
                 overload["exit_code"] = server.stop()
             results["backends"][n]["overload"] = dict(overload, max_streams=max_streams)

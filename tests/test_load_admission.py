@@ -4,6 +4,7 @@ its Prometheus metrics."""
 
 from __future__ import annotations
 
+import threading
 import time
 import urllib.request
 
@@ -109,3 +110,25 @@ def test_stream_bound_refuses_new_devices_at_once_and_keeps_health_open():
     assert health.status == health_pb2.HealthCheckResponse.SERVING
     refusals = sum(s.client in refused for s in result.samples)
     assert hardening.metrics.count("RESOURCE_EXHAUSTED", "Track", "-") >= refusals
+
+
+def test_the_refusal_probe_times_a_full_server_and_passes_an_open_one():
+    from benchmarks.refusal_probe import probe
+
+    estimator, hardening = SlowEstimator(0.002), Hardening(max_streams=1)
+    with BackgroundServer(EstimatorRegistry([estimator]), grace_s=0.0, hardening=hardening) as srv:
+        assert probe(srv.address, 0.3, 0.05)["admitted"] >= 1  # a free slot: admitted
+        stop = threading.Event()
+
+        def no_frames_until_stopped():
+            stop.wait(10)
+            yield from ()
+
+        with grpc.insecure_channel(srv.address) as channel:  # a device holding the only slot
+            held = pb_grpc.PoseEstimationStub(channel).Track(no_frames_until_stopped())
+            held.initial_metadata()
+            full = probe(srv.address, 0.3, 0.05)
+            stop.set()
+            held.cancel()
+    assert full["admitted"] == 0 and len(full["refused_ms"]) >= 2 and not full["other"]
+    assert all(0 < ms < 5000 for ms in full["refused_ms"])
