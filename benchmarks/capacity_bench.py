@@ -20,8 +20,6 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-
 from loadtest import ramp, report, runner, servers, workload
 
 REPO = Path(__file__).resolve().parents[1]
@@ -86,11 +84,12 @@ def _overload(name: str, spec: runner.LoadSpec, work: workload.Workload, clients
     servers.pin(probe.pid, probe_cpus)
     result = runner.run(replace(spec, clients=clients), work)
     probed = json.loads(probe.communicate(timeout=30)[0] or "{}")
+    probe_ms = report.percentiles(probed.get("refused_ms", []))
     summary = report.write_all(result, out / name, stem="overload")
     refused = [s.latency_ms for s in result.samples if s.outcome == "grpc:RESOURCE_EXHAUSTED"]
     print(f"{name}: overload at {clients} clients\n{report.format_summary(summary)}", flush=True)
-    print(f"  lone probe device: {len(probed.get('refused_ms', []))} refusals, "
-          f"p50/p99/max {_percentiles(probed.get('refused_ms', []))} ms, {probed.get('admitted')} admitted", flush=True)
+    print(f"  lone probe device: {len(probed.get('refused_ms', []))} refusals, p50/p99/max {probe_ms['p50_ms']}/"
+          f"{probe_ms['p99_ms']}/{probe_ms['max_ms']} ms, {probed.get('admitted')} admitted", flush=True)
     try:
         servers.wait_serving(server.address, timeout_s=5, process=server.process)
         up = True
@@ -99,13 +98,9 @@ def _overload(name: str, spec: runner.LoadSpec, work: workload.Workload, clients
     return {"clients": clients, "server_up_after": up, "ok_fps": summary["ok_fps"],
             "ok_p99_ms": summary["latency_ok"]["p99_ms"], "rejected_p99_ms": summary["latency_rejected"]["p99_ms"],
             "rejected_max_ms": max(refused) if refused else None,
-            "probe_refused_ms": _percentiles(probed.get("refused_ms", [])), "probe_admitted": probed.get("admitted"),
+            "probe_refused_ms": probe_ms, "probe_admitted": probed.get("admitted"),
             "rejected_share": 1 - summary["outcomes"].get("OK", 0) / max(1, summary["answered"]),
             "outcomes": summary["outcomes"]}
-
-
-def _percentiles(values: list[float]) -> list[float] | None:
-    return [round(float(v), 2) for v in np.percentile(values, [50, 99, 100])] if values else None
 
 
 def run(args: argparse.Namespace) -> int:

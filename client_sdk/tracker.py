@@ -355,13 +355,14 @@ class Tracker:
                 keep_ref = dt < o.bscm_min_interval_s
                 if o.bscm_min_interval_s <= dt <= o.bscm_max_interval_s and x_mid is not None:
                     p_vel = _rot(x_imu, u) if o.bscm_imu_orientation else p
-                    speed = sqrt(sum((p_vel[k] - p_ref[k]) ** 2 for k in range(3))) / dt
+                    speed = 0.0
                     if self._velocity_known:
                         gains = (o.gyro_bias_gain, o.accel_bias_gain, o.velocity_gain, o.bscm_max_velocity_error,
                                  o.bscm_max_rotation_rate)
                     else:  # first BSCM after a PRM reset: velocity outright from the two poses, biases kept
                         gains = (0.0, 0.0, 1.0, float("inf"), float("inf"))
-                    if not self._velocity_known and speed > o.max_speed_m_s:
+                        speed = sqrt(sum((p_vel[k] - p_ref[k]) ** 2 for k in range(3))) / dt
+                    if speed > o.max_speed_m_s:
                         reset = True
                         detail = f"two backend poses imply {speed:.1f} m/s: one is wrong; PRM reset"
                     else:
@@ -377,14 +378,8 @@ class Tracker:
             R_set, p_set = blend_pose(x_imu, R, p, o.pose_gain)
             if regravitate:  # the whole pose; the velocity, propagated with the wrong gravity, starts again at 0
                 R_set, p_set, v = R, p, (0.0, 0.0, 0.0)
-                self._c = self._c[0:6] + _rot(R_set, _rot_t(x_imu, self._c[6:9]))
                 detail = "the backend kept disagreeing: its pose applied, gravity re-anchored, PRM reset"
-            elif o.gravity_follow > 0:  # towards the body-frame gravity kept (TrackerOptions.gravity_follow)
-                g_new = _rot(R_set, _rot_t(x_imu, self._c[6:9]))
-                k = o.gravity_follow
-                g = tuple((1 - k) * self._c[6 + i] + k * g_new[i] for i in range(3))
-                n = sqrt(sum(e * e for e in g)) / sqrt(sum(e * e for e in self._c[6:9]))
-                self._c = self._c[0:6] + tuple(e / n for e in g)
+            self._follow_gravity(x_imu, R_set, 1.0 if regravitate else o.gravity_follow)
             self._anchor_t, self._anchor_x = t0, R_set + p_set + tuple(v)
             # the reference for the next V_avg, in the same terms as p_vel will be then
             if not keep_ref:
@@ -394,6 +389,17 @@ class Tracker:
             self._corrected = True
         propagate(self._step, self._anchor_x, self._c, t0, buf.samples, buf.states, buf.index_at_or_before(t0) + 1)
         return self._outcome(outcome, detail)
+
+    def _follow_gravity(self, x_imu: tuple, R_set: tuple, k: float) -> None:
+        """Move g_O a fraction k of the way to where the orientation change x_imu -> R_set carries it
+        (k = 1 keeps the body-frame gravity exactly; TrackerOptions.gravity_follow), keeping its norm."""
+        if k <= 0:
+            return
+        g_old = self._c[6:9]
+        g_new = _rot(R_set, _rot_t(x_imu, g_old))
+        g = tuple((1 - k) * g_old[i] + k * g_new[i] for i in range(3))
+        scale = sqrt(sum(e * e for e in g_old)) / sqrt(sum(e * e for e in g))
+        self._c = self._c[0:6] + tuple(e * scale for e in g)
 
     def _gate_distance(self, x_imu: tuple, T_CO: list[float]) -> float | None:
         """The mean box-corner distance (px) between the backend's pose and the tracked one at the

@@ -12,7 +12,7 @@ import numpy as np
 from loadtest.runner import LoadResult
 
 
-def _percentiles(latencies_ms: list[float]) -> dict[str, float | None]:
+def percentiles(latencies_ms: list[float]) -> dict[str, float | None]:
     if not latencies_ms:
         return {"p50_ms": None, "p95_ms": None, "p99_ms": None, "max_ms": None}
     p50, p95, p99 = np.percentile(latencies_ms, [50, 95, 99])
@@ -33,9 +33,9 @@ def summarize(result: LoadResult) -> dict:
         "offered_fps": spec.clients * spec.fps,
         "throughput_fps": len(samples) / window, "ok_fps": len(ok) / window,
         "error_rate": 1.0 - len(ok) / len(samples) if samples else 1.0,
-        "latency_all": _percentiles([s.latency_ms for s in samples]),
-        "latency_ok": _percentiles(ok),
-        "latency_rejected": _percentiles(rejected),
+        "latency_all": percentiles([s.latency_ms for s in samples]),
+        "latency_ok": percentiles(ok),
+        "latency_rejected": percentiles(rejected),
         "outcomes": dict(sorted(outcomes.items())),
     }
 

@@ -153,6 +153,18 @@ def test_a_minimum_baseline_still_estimates_velocity_and_biases():
     assert np.linalg.norm(st.b_g - B_G) < 0.005
 
 
+def _noisy_backend(m, sigma_deg: float, seed: int, sigma_m: float = 0.003):
+    """A backend answer(t): the true pose with Gaussian rotation (deg) and translation (m) noise per axis."""
+    rng = np.random.default_rng(seed)
+
+    def answer(t):
+        T = m.T_CO(t)
+        return se3.make(so3.exp(np.radians(sigma_deg) * rng.standard_normal(3)) @ T[:3, :3],
+                        T[:3, 3] + sigma_m * rng.standard_normal(3))
+
+    return answer
+
+
 def test_preset_ours_averages_a_noisy_backend_and_still_tracks_a_gt_one():
     """"ours" (alpha-beta filter on the backend pose) beats the paper's reset with a backend noisy at
     3 mm / 0.3 deg per axis, and stays below half a pixel with a GT backend and biases."""
@@ -163,14 +175,7 @@ def test_preset_ours_averages_a_noisy_backend_and_still_tracks_a_gt_one():
     assert _errors(gt, m)[len(gt.poses) // 2:].mean() < 0.5
     mean = {}
     for name in ("paper", "ours"):
-        rng = np.random.default_rng(3)
-
-        def answer(t, rng=rng):
-            T = m.T_CO(t)
-            return se3.make(so3.exp(np.radians(0.3) * rng.standard_normal(3)) @ T[:3, :3],
-                            T[:3, 3] + 0.003 * rng.standard_normal(3))
-
-        run = drive(m, preset(name), duration_s=8.0, fps=120.0, answer=answer, gyro_sigma=6.63e-5 * np.sqrt(200),
+        run = drive(m, preset(name), duration_s=8.0, fps=120.0, answer=_noisy_backend(m, 0.3, seed=3), gyro_sigma=6.63e-5 * np.sqrt(200),
                     accel_sigma=7.35e-4 * np.sqrt(200), seed=2)
         mean[name] = _errors(run, m).mean()
     assert mean["ours"] < 0.9 * mean["paper"]  # 2.03 vs 2.37 px here
@@ -186,13 +191,7 @@ def test_preset_vision_keeps_gravity_through_a_backend_off_by_degrees():
     m = Motion()
     mean = {}
     for name in ("ours", "vision"):
-        rng = np.random.default_rng(5)
-
-        def answer(t, rng=rng):
-            T = m.T_CO(t)
-            return se3.make(so3.exp(np.radians(5.0) * rng.standard_normal(3)) @ T[:3, :3],
-                            T[:3, 3] + 0.003 * rng.standard_normal(3))
-
-        run = drive(m, preset(name), duration_s=6.0, fps=30.0, latency_s=0.15, answer=answer, seed=2)
+        run = drive(m, preset(name), duration_s=6.0, fps=30.0, latency_s=0.15, answer=_noisy_backend(m, 5.0, seed=5),
+                    seed=2)
         mean[name] = _errors(run, m).mean()
     assert mean["vision"] < 0.5 * mean["ours"], mean  # 7.0 vs 17.9 px here
