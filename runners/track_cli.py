@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
 
 from client_sdk import TrackerOptions
@@ -38,6 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", choices=("paper", "ours", "vision"), default="paper",
                         help="tracker options (client_sdk.options.preset): paper, ours (noisy backends), vision "
                         "(backends whose orientation is off by degrees, e.g. pvnet)")
+    parser.add_argument("--set", action="append", default=[], metavar="OPTION=VALUE",
+                        help="override one TrackerOptions field of the preset, e.g. --set gravity_follow=0.5 "
+                        "(repeatable; numbers and true/false)")
     parser.add_argument("--no-bscm", action="store_true", help="ablation: no bias self-correction")
     parser.add_argument("--no-pia", action="store_true", help="ablation: no pose inspection")
     parser.add_argument("--imu-only", action="store_true", help="ablation: no backend after initialisation")
@@ -58,9 +61,28 @@ def network_options(kind: str, seed: int) -> NetworkOptions:
     return NetworkOptions(seed=seed, fixed_payload_bytes=None if kind == "real-size" else NetworkOptions().fixed_payload_bytes)
 
 
+def overrides(pairs: list[str]) -> dict:
+    """["gravity_follow=0.5", "pia=false"] -> {"gravity_follow": 0.5, "pia": False}; ValueError on a bad one."""
+    known = {f.name: f.type for f in fields(TrackerOptions)}
+    out = {}
+    for pair in pairs:
+        name, sep, value = pair.partition("=")
+        if not sep or name not in known:
+            raise ValueError(f"--set {pair!r}: expected OPTION=VALUE with OPTION one of {sorted(known)}")
+        if value.lower() in ("true", "false"):
+            out[name] = value.lower() == "true"
+        else:
+            try:
+                out[name] = float(value)
+            except ValueError:
+                raise ValueError(f"--set {pair!r}: {value!r} is not a number or true/false") from None
+    return out
+
+
 def tracker_options(args) -> TrackerOptions:
-    return replace(preset(args.preset), bscm=not args.no_bscm, pia=not args.no_pia,
-                   backend_after_init=not args.imu_only, integrator=args.integrator)
+    flags = replace(preset(args.preset), bscm=not args.no_bscm, pia=not args.no_pia,
+                    backend_after_init=not args.imu_only, integrator=args.integrator)
+    return replace(flags, **overrides(args.set))
 
 
 def run(args) -> int:

@@ -53,6 +53,14 @@ def test_track_cli_writes_results_and_rejects_bad_input(short_seq, tmp_path, cap
     assert "does not exist" in capsys.readouterr().err
     assert main(["track", str(short_seq.root), "--out", str(out), "--backend", "nope", "--no-plots"]) == 2
     assert "unknown estimator" in capsys.readouterr().err
+    tuned = ["track", str(short_seq.root), "--out", str(tmp_path / "tuned"), "--backend", "noisy", "--no-plots",
+             "--preset", "vision", "--set", "gravity_follow=0.5", "--set", "pia=false"]
+    assert main(tuned) == 0
+    capsys.readouterr()
+    assert main(["track", str(short_seq.root), "--out", str(out), "--set", "warp=9", "--no-plots"]) == 2
+    assert "OPTION=VALUE with OPTION one of" in capsys.readouterr().err
+    assert main(["track", str(short_seq.root), "--out", str(out), "--set", "pose_gain=2", "--no-plots"]) == 2
+    assert "pose_gain" in capsys.readouterr().err
 
 
 def test_demo_runs_live_end_to_end(tmp_path, capsys):
