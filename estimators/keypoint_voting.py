@@ -2,8 +2,14 @@
 
 Each object pixel p carries, per keypoint, a unit vector v pointing at it. Hypotheses are the
 intersections of the rays of random pixel pairs; a pixel votes for a hypothesis h when the angle
-between v and h - p is small (cosine above a threshold). The best-supported hypothesis is refined
-by least squares over its inliers' rays (the point nearest to all of them), twice.
+between v and h - p is small (cosine above a threshold). The best-supported hypothesis is the
+keypoint.
+
+It is not refined by least squares over its inliers' rays (the point nearest to all of them): with
+angular noise on the vectors that point is pulled towards the pixels, because a ray's distance to a
+point grows with the point's distance from the ray's pixel. Keypoints off the object came out a
+few per cent too close to the object's centre, which PnP reads as a few per cent more distance
+(docs/pvnet.md); the vote count is an angular score and has no such pull.
 """
 
 from __future__ import annotations
@@ -18,7 +24,6 @@ class VotingConfig:
     hypotheses: int = 64  # per keypoint
     cos_threshold: float = 0.99  # about 8 degrees
     max_pixels: int = 500  # pixels that score the hypotheses (a random subset beyond this)
-    refine_iterations: int = 2
 
 
 def _intersect(p1, v1, p2, v2):
@@ -35,19 +40,6 @@ def _inliers(h: np.ndarray, pixels: np.ndarray, vectors: np.ndarray, cos_thresho
     dy = h[:, :, None, 1] - pixels[None, None, :, 1]
     dot = dx * vectors.T[0][:, None, :] + dy * vectors.T[1][:, None, :]
     return (dot > 0) & (dot * dot > (cos_threshold * cos_threshold) * (dx * dx + dy * dy))
-
-
-def _least_squares_point(pixels: np.ndarray, vectors: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """(K, 2): per keypoint, the point minimising the weighted squared distances to the rays.
-
-    Normal equations sum_n w (I - v v^T) x = sum_n w (I - v v^T) p, written out for 2x2.
-    """
-    vx, vy = vectors[..., 0], vectors[..., 1]  # (N, K)
-    px, py = pixels[:, 0:1], pixels[:, 1:2]
-    a, b, c = weights * (1 - vx * vx), -weights * vx * vy, weights * (1 - vy * vy)
-    A = np.stack([np.stack([a.sum(0), b.sum(0)], -1), np.stack([b.sum(0), c.sum(0)], -1)], -2)  # (K, 2, 2)
-    rhs = np.stack([(a * px + b * py).sum(0), (b * px + c * py).sum(0)], -1)  # (K, 2)
-    return np.linalg.solve(A + 1e-9 * np.eye(2), rhs[..., None])[..., 0]
 
 
 def vote(pixels: np.ndarray, vectors: np.ndarray, rng: np.random.Generator,
@@ -68,10 +60,5 @@ def vote(pixels: np.ndarray, vectors: np.ndarray, rng: np.random.Generator,
     score = _inliers(h.astype(np.float32), pixels[sub].astype(np.float32), vectors[sub].astype(np.float32),
                      config.cos_threshold).sum(axis=2)
     kp = h[np.arange(k), np.argmax(score, axis=1)]
-    support = _inliers(kp[:, None, :], pixels, vectors, config.cos_threshold)[:, 0].T.astype(np.float64)  # (N, K)
-    for _ in range(config.refine_iterations):
-        if np.any(support.sum(axis=0) < 2):
-            break
-        kp = _least_squares_point(pixels, vectors, support)
-        support = _inliers(kp[:, None, :], pixels, vectors, config.cos_threshold)[:, 0].T.astype(np.float64)
-    return kp, support.mean(axis=0)
+    support = _inliers(kp[:, None, :], pixels, vectors, config.cos_threshold)[:, 0]  # (K, N)
+    return kp, support.mean(axis=1)
