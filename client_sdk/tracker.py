@@ -403,12 +403,15 @@ class Tracker:
 
     def _gate_distance(self, x_imu: tuple, T_CO: list[float]) -> float | None:
         """The mean box-corner distance (px) between the backend's pose and the tracked one at the
-        capture time when it is beyond the backend gate (and the gate applies), else None."""
+        capture time when it is beyond the backend gate (and the gate applies), else None. A pose with
+        a box corner behind the camera has no such distance: it counts as infinitely far."""
         o = self.options
         if not (o.backend_gate_px > 0 and self.status is Status.FINE and self._velocity_known):
             return None
         uv_tracked = self.inspector.project(self._T_CO(x_imu))
         uv_backend = self.inspector.project(np.array(T_CO).reshape(4, 4))
+        if uv_tracked is None or uv_backend is None:
+            return float("inf")
         jump = float(np.mean(np.linalg.norm(uv_backend - uv_tracked, axis=1)))
         return None if jump <= o.backend_gate_px else jump
 

@@ -360,6 +360,23 @@ def test_the_backend_gate_ignores_a_flipped_pose_and_gives_way_to_a_persistent_o
     assert proj_px(moved.poses[-1], _flipped(m.T_CO(moved.times_ns[-1] * 1e-9)), CAMERA, BOX_O) < 2.0
 
 
+def test_the_backend_gate_refuses_a_pose_behind_the_camera_without_failing():
+    """A pose with box corners behind the camera has no pixel distance to the tracked one: it is gated
+    (it once raised a TypeError inside the tracker, in a pvnet replay)."""
+    m = Motion()
+    behind = {"n": 0}
+
+    def once_behind(t):
+        if t > 2.0 and behind["n"] == 0:
+            behind["n"] = 1
+            return se3.make(so3.exp(np.array([np.pi, 0.0, 0.0])), np.zeros(3)) @ m.T_CO(t)  # turned behind the camera
+        return m.T_CO(t)
+
+    run = drive(m, TrackerOptions(backend_gate_px=50.0), duration_s=3.0, answer=once_behind)
+    assert behind["n"] == 1 and run.tracker.outcomes[ResponseOutcome.GATED] == 1
+    assert proj_px(run.poses[-1], m.T_CO(run.times_ns[-1] * 1e-9), CAMERA, BOX_O) < 0.5
+
+
 def test_a_wrong_first_pose_is_overruled_and_gravity_re_anchored():
     """Initialised from a flipped pose, the tracker's gravity is wrong too; once the gate gives way to
     the backend's consistent answers, both are set right and tracking comes back."""
