@@ -22,6 +22,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--grace-s", type=float, default=5.0,
                         help="on SIGTERM/SIGINT, seconds in-flight calls get to finish")
     parser.add_argument("--workers", type=int, default=4, help="threads that run estimator calls")
+    parser.add_argument("--gil-switch-ms", type=float, default=0.5,
+                        help="the longest a thread holds Python's GIL while others wait for it (Python's default is "
+                             "5): gRPC's poller thread and the estimator threads wait on the busy event loop, and "
+                             "every new call or answered frame waited with them (docs/operations.md)")
     parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     parser.add_argument("--check", metavar="ADDR",
                         help="do not serve: ask the server at ADDR (host:port) for its health; exit 0 if SERVING")
@@ -61,5 +65,9 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"flextrack serve: {exc}", file=sys.stderr)
         return 2
+    if not args.gil_switch_ms > 0:
+        print(f"flextrack serve: --gil-switch-ms must be > 0, got {args.gil_switch_ms}", file=sys.stderr)
+        return 2
+    sys.setswitchinterval(args.gil_switch_ms / 1e3)  # this process is the server's alone
     return asyncio.run(server.serve(lambda: EstimatorRegistry.from_config(args.config), args.host, args.port,
                                     args.max_message_mb, args.grace_s, args.workers, hardening=hardening))

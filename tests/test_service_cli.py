@@ -58,5 +58,11 @@ def test_serve_help_lists_its_options():
     done = subprocess.run(check=False, args=[sys.executable, "-m", "flextrack", "serve", "--help"], cwd=REPO, capture_output=True,
                           text=True, timeout=60)
     assert done.returncode == 0
-    for option in ("--port", "--config", "--host", "--max-message-mb", "--log-level", "--check"):
+    for option in ("--port", "--config", "--host", "--max-message-mb", "--log-level", "--check", "--gil-switch-ms"):
         assert option in done.stdout
+
+
+def test_serve_refuses_a_gil_switch_interval_that_is_not_positive():
+    done = subprocess.run(check=False, args=[sys.executable, "-m", "flextrack", "serve", "--port", "0", "--gil-switch-ms", "0"],
+                          cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "--gil-switch-ms must be > 0" in done.stderr
