@@ -46,6 +46,15 @@ def _components(mask: np.ndarray, count: int, min_px: int) -> list[np.ndarray]:
     return [labels == 1 + int(k) for k in order if areas[k] >= min_px]
 
 
+def _unturn(points: np.ndarray, vectors: np.ndarray, turns: int, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Points (N, 2) and vectors (N, K, 2) found in np.rot90(crop, turns) of a size x size crop, in the
+    crop's own coordinates. One turn (counter-clockwise) took crop pixel (x, y) to (y, size - 1 - x)."""
+    for _ in range(turns % 4):
+        points = np.stack([size - 1 - points[:, 1], points[:, 0]], axis=1)
+        vectors = np.stack([-vectors[..., 1], vectors[..., 0]], axis=-1)
+    return points, vectors
+
+
 class PvnetEstimator(Estimator):
     kind = "pvnet"
     version = "1.0"
@@ -55,7 +64,8 @@ class PvnetEstimator(Estimator):
     def __init__(self, objects: ObjectRegistry, model_path: str | Path, name: str = "pvnet", object_ids=(),
                  min_mask_px: int = 12, zoom: bool = True, zoom_size: int = 128, zoom_object_px: float = 64.0,
                  full_resolution_search: bool = True, near_box_px: float = 50.0, candidates: int = 3,
-                 candidate_share: float = 0.25, min_confidence: float = 0.1, hypotheses: int = 64, cos_threshold: float = 0.99, ransac_px: float = 8.0, seed: int = 0,
+                 candidate_share: float = 0.25, min_confidence: float = 0.1, rotations: int = 4, turn_margin: float = 1.5,
+                 hypotheses: int = 64, cos_threshold: float = 0.99, ransac_px: float = 8.0, seed: int = 0,
                  device: str = "auto", threads: int = 0):
         import onnxruntime as ort
 
@@ -85,6 +95,12 @@ class PvnetEstimator(Estimator):
         self.full_resolution_search, self.near_box_px = bool(full_resolution_search), float(near_box_px)
         self.candidates, self.candidate_share = int(candidates), float(candidate_share)
         self.min_confidence = float(min_confidence)
+        if rotations not in (1, 4):
+            raise ValueError(f"estimator '{name}': rotations must be 1 (the crop as it is) or 4 (also turned by 90, "
+                             f"180 and 270 degrees), got {rotations}")
+        self.rotations, self.turn_margin = int(rotations), float(turn_margin)
+        if self.turn_margin < 1:
+            raise ValueError(f"estimator '{name}': turn_margin must be >= 1, got {turn_margin}")
         self.voting = VotingConfig(hypotheses=int(hypotheses), cos_threshold=float(cos_threshold))
         self.seed = int(seed)
         self._pnp = PnpEstimator(objects, name=f"{name}.pnp", object_ids=ids, ransac_px=ransac_px)
@@ -92,7 +108,8 @@ class PvnetEstimator(Estimator):
     @classmethod
     def from_spec(cls, spec) -> PvnetEstimator:
         spec.check_params({"min_mask_px", "zoom", "zoom_size", "zoom_object_px", "full_resolution_search",
-                           "near_box_px", "candidates", "candidate_share", "min_confidence", "hypotheses", "cos_threshold",
+                           "near_box_px", "candidates", "candidate_share", "min_confidence", "rotations", "turn_margin",
+                           "hypotheses", "cos_threshold",
                            "ransac_px", "seed", "device", "threads"})
         if spec.model is None:
             raise ValueError(f"estimator '{spec.name}' (kind pvnet) needs `model = \"path/to/pvnet.onnx\"`")
@@ -196,28 +213,39 @@ class PvnetEstimator(Estimator):
         # A candidate far smaller than the largest is a blob of false mask (a table leg), and its few
         # consistent votes can give a confident-looking pose: only those near the largest's size go on.
         found = [[c for c in f if len(c[0]) >= self.candidate_share * len(f[0][0])] for f in found]
-        fields = [[(c[0], c[1]) for c in f] for f in found]  # per frame, per candidate: the field voted on
+        fields = [[(c[0], c[1], 0) for c in f] for f in found]  # per frame, the fields voted on, with their turn
         pairs = [(i, j) for i in range(n) for j in range(len(found[i]))]
         if self.zoom and pairs:
             crops = [self._zoom_crop(images[i], halves[i], found[i][j][2]) for i, j in pairs]
-            for (i, j), out, (_, scale, off) in zip(pairs, self._run([c[0] for c in crops]), crops):
+            turns = [(p, t) for p in range(len(pairs)) for t in range(0, 4, 4 // self.rotations)]
+            outs = self._run([np.rot90(crops[p][0], t) for p, t in turns])
+            zoomed: list[list] = [[] for _ in pairs]
+            for (p, t), out in zip(turns, outs):
                 masks = _components(out[0] > 0, 1, self.min_mask_px)
-                if not masks:
-                    continue  # keep the whole-frame field
-                rows, cols, vec = self._field(out, masks[0])
-                crop_pts = np.stack([OUTPUT_STRIDE * cols + 0.5, OUTPUT_STRIDE * rows + 0.5], axis=1)
-                fields[i][j] = ((crop_pts - off) / scale, vec)
+                if masks:
+                    rows, cols, vec = self._field(out, masks[0])
+                    pts, vec = _unturn(np.stack([OUTPUT_STRIDE * cols + 0.5, OUTPUT_STRIDE * rows + 0.5], axis=1),
+                                       vec, t, self.zoom_size)
+                    _, scale, off = crops[p]
+                    zoomed[p].append(((pts - off) / scale, vec, t))
+            # a candidate whose crop shows no mask in any turn keeps its whole-frame field
+            fields = [[] for _ in range(n)]
+            for p, (i, j) in enumerate(pairs):
+                fields[i] += zoomed[p] or [(found[i][j][0], found[i][j][1], 0)]
         inference_ms = (time.perf_counter() - t0) * 1e3 / n
         return [self._solve(inp, cands, inference_ms) for inp, cands in zip(inputs, fields)]
 
     def _solve(self, inp: EstimateInput, candidates: list, inference_ms: float) -> EstimateOutput:
-        """Votes and solves each candidate; the most confident pose wins."""
+        """Votes and solves each candidate; the most confident pose wins, a turned crop's only by a factor
+        `turn_margin`: the network was trained on upright objects (modest camera roll), and in a crop
+        turned away from upright it still tends to see one, a pose some pixels off with a confidence
+        near the right one's. Turns are for views rolled far from upright, where the unturned crop fails."""
         if not candidates:
             return EstimateOutput(Status.OBJECT_NOT_FOUND, message="the object mask is too small or empty",
                                   stage_ms={"inference": inference_ms})
         voting_ms = pnp_ms = 0.0
-        best = None
-        for pixels, vectors in candidates:
+        best, best_score = None, 0.0
+        for pixels, vectors, turn in candidates:
             t1 = time.perf_counter()
             rng = np.random.default_rng([self.seed, inp.frame_id & 0xFFFFFFFF])
             keypoints, inlier_ratio = vote(pixels, vectors, rng, self.voting)
@@ -228,8 +256,9 @@ class PvnetEstimator(Estimator):
             pnp_ms += (time.perf_counter() - t2) * 1e3
             if out.status == Status.OK:
                 out.confidence = float(out.confidence * np.mean(inlier_ratio))
-            if best is None or (out.status == Status.OK and (best.status != Status.OK or out.confidence > best.confidence)):
-                best = out
+            score = out.confidence / (self.turn_margin if turn else 1.0)
+            if best is None or (out.status == Status.OK and (best.status != Status.OK or score > best_score)):
+                best, best_score = out, score
         if best.status == Status.OK and best.confidence < self.min_confidence:
             best = EstimateOutput(Status.OBJECT_NOT_FOUND, message=f"no confident pose (best {best.confidence:.2f} < "
                                   f"min_confidence {self.min_confidence:g})")

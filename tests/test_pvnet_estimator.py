@@ -12,8 +12,8 @@ torch = pytest.importorskip("torch")
 
 from estimators.base import EstimateInput, InvalidInput, Status
 from estimators.objects import ObjectRegistry, load_object
-from estimators.pvnet import PvnetEstimator
-from flextrack.geometry import metrics, se3
+from estimators.pvnet import PvnetEstimator, _unturn
+from flextrack.geometry import metrics, se3, so3
 from flextrack.geometry.camera import PinholeCamera
 from training.cli import DEFAULT_OBJECT
 from training.export_onnx import export
@@ -123,8 +123,8 @@ def test_a_false_blob_far_smaller_than_the_object_is_not_a_candidate(registry, r
 
     pvnet_module.PvnetEstimator._solve = spy
     try:
-        PvnetEstimator(registry, SHIPPED, candidate_share=0.0).estimate(_input(frame))
-        PvnetEstimator(registry, SHIPPED).estimate(_input(frame))
+        PvnetEstimator(registry, SHIPPED, candidate_share=0.0, rotations=1).estimate(_input(frame))
+        PvnetEstimator(registry, SHIPPED, rotations=1).estimate(_input(frame))
     finally:
         pvnet_module.PvnetEstimator._solve = solve
     assert seen[0] >= 2 and seen[1] == 1
@@ -143,3 +143,32 @@ def test_config_builds_a_pvnet_estimator(blind_model):
         EstimatorRegistry.from_dict(doc(), Path("."))
     with pytest.raises(ValueError, match="unknown parameter"):
         EstimatorRegistry.from_dict(doc(model=str(blind_model), params={"zooom": 1}), Path("."))
+
+
+def test_points_and_vectors_found_in_a_turned_crop_map_back():
+    size, p, q = 16, (3.0, 5.0), (11.0, 2.0)  # a pixel and the keypoint its vector points at
+    crop = np.zeros((size, size), np.uint8)
+    crop[int(p[1]), int(p[0])], crop[int(q[1]), int(q[0])] = 1, 2
+    for turns in range(4):
+        turned = np.rot90(crop, turns)
+        (py, px), (qy, qx) = np.argwhere(turned == 1)[0], np.argwhere(turned == 2)[0]
+        v = np.array([[[qx - px, qy - py]]], float)
+        back, v_back = _unturn(np.array([[px, py]], float), v, turns, size)
+        assert np.allclose(back[0], p)
+        assert np.allclose(v_back[0, 0], np.subtract(q, p))
+
+
+@pytest.mark.skipif(not SHIPPED.is_file(), reason=f"no shipped model at {SHIPPED}")
+def test_turned_crops_find_an_object_seen_upside_down(registry, rendered):
+    """The network was trained with modest camera roll only; a camera rolled 180 degrees (the circular
+    motion program rolls steadily) is found through the crop turned half way round."""
+    rgb, T_gt = rendered[0]
+    M = cv2.getRotationMatrix2D((CAMERA.cx, CAMERA.cy), 180.0, 1.0)
+    upside_down = cv2.warpAffine(rgb, M, (CAMERA.width, CAMERA.height), borderMode=cv2.BORDER_REFLECT)
+    T_rolled = se3.make(so3.exp(np.array([0.0, 0.0, np.pi])), np.zeros(3)) @ T_gt
+    verts = registry.get("default").vertices
+    outs = {r: PvnetEstimator(registry, SHIPPED, rotations=r).estimate(_input(upside_down)) for r in (1, 4)}
+    assert outs[4].status == Status.OK and metrics.proj_px(outs[4].T_CO, T_rolled, CAMERA, verts) < 5.0
+    assert outs[1].status != Status.OK or metrics.proj_px(outs[1].T_CO, T_rolled, CAMERA, verts) > 5.0
+    with pytest.raises(ValueError, match="rotations"):
+        PvnetEstimator(registry, SHIPPED, rotations=3)

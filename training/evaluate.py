@@ -38,17 +38,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=int, default=200, help="rendered frames")
     parser.add_argument("--seed", type=int, default=20261122, help="seed of the rendered frames (never a training seed)")
     parser.add_argument("--scenes", type=int, default=4, help="rooms the rendered frames are spread over")
+    parser.add_argument("--roll-deg", type=float, default=0.0,
+                        help="rendered frames: the camera turned this far about its optical axis (training saw at "
+                             "most about 40 deg of roll)")
     parser.add_argument("--bop", type=Path, help="evaluate on a BOP scene folder instead of rendered frames")
     parser.add_argument("--obj-id", type=int, default=6, help="BOP object id in --bop's scene_gt.json")
     parser.add_argument("--no-zoom", action="store_true", help="vote on the whole-frame pass only (no crop pass)")
+    parser.add_argument("--rotations", type=int, default=4, choices=(1, 4),
+                        help="the estimator's crop turns (1: the crop only as it is)")
     parser.add_argument("--sheet", type=int, default=20, help="frames drawn in the contact sheet")
 
 
 # ---- frames -----------------------------------------------------------------------------------
 
-def rendered_frames(model_path: Path, n: int, seed: int, scenes: int):
-    """Yields (name, rgb, camera, T_CO, group) for n frames in the simulator's room."""
-    from flextrack.geometry import se3
+def rendered_frames(model_path: Path, n: int, seed: int, scenes: int, roll_deg: float = 0.0):
+    """Yields (name, rgb, camera, T_CO, group) for n frames in the simulator's room, the camera rolled
+    by roll_deg about its optical axis (the same viewpoints whatever the roll)."""
+    from flextrack.geometry import se3, so3
     from flextrack.geometry.camera import PinholeCamera
     from simulator.render import Renderer, load_model
     from simulator.scene import make_scene
@@ -59,11 +65,12 @@ def rendered_frames(model_path: Path, n: int, seed: int, scenes: int):
     T_WO = se3.make(np.eye(3), [0.0, 0.0, -vertices[:, 2].min()])  # standing on the table top (z = 0)
     centre_W = se3.transform_points(T_WO, (vertices.min(axis=0) + vertices.max(axis=0))[None] / 2)[0]
     rng = np.random.default_rng(seed)
+    roll = se3.make(so3.exp(np.array([0.0, 0.0, np.radians(roll_deg)])), np.zeros(3))
     per_scene = int(np.ceil(n / scenes))
     for s in range(scenes):
         with Renderer(camera, model_path, scene=make_scene(seed + s), T_WO=T_WO) as renderer:
             for i in range(s * per_scene, min(n, (s + 1) * per_scene)):
-                T_CO = se3.inverse(look_at_pose(rng, camera, centre_W)) @ T_WO
+                T_CO = roll @ se3.inverse(look_at_pose(rng, camera, centre_W)) @ T_WO
                 yield f"{i:04d}", renderer.render(T_CO).rgb, camera, T_CO, "rendered"
 
 
@@ -131,14 +138,15 @@ def summarise(rows: list[dict]) -> dict:
     return summary
 
 
-def evaluate(model: Path, object_path: Path, frames, out: Path, zoom: bool = True, sheet: int = 20) -> dict:
+def evaluate(model: Path, object_path: Path, frames, out: Path, zoom: bool = True, sheet: int = 20,
+             rotations: int = 4) -> dict:
     from estimators.base import EstimateInput, Status
     from estimators.objects import ObjectRegistry, load_object
     from estimators.pvnet import PvnetEstimator
     from flextrack.geometry import metrics
 
     obj = load_object("object", object_path)
-    estimator = PvnetEstimator(ObjectRegistry([obj]), model, zoom=zoom)
+    estimator = PvnetEstimator(ObjectRegistry([obj]), model, zoom=zoom, rotations=rotations)
     rows, drawings = [], []
     out.mkdir(parents=True, exist_ok=True)
     for i, (name, rgb, camera, T_gt, group) in enumerate(frames):
@@ -155,8 +163,8 @@ def evaluate(model: Path, object_path: Path, frames, out: Path, zoom: bool = Tru
             drawings.append(draw_pose(rgb, camera, T_gt, T_est, obj.bbox_corners,
                                       f"{name} {group} proj {proj:.1f}px"))
     summary = summarise(rows)
-    (out / "results.json").write_text(json.dumps({"model": str(model), "object": str(object_path),
-                                                  "zoom": zoom, "summary": summary, "frames": rows}, indent=1))
+    (out / "results.json").write_text(json.dumps({"model": str(model), "object": str(object_path), "zoom": zoom,
+                                                  "rotations": rotations, "summary": summary, "frames": rows}, indent=1))
     if drawings:
         cv2.imwrite(str(out / "poses.jpg"), contact_sheet(drawings), [cv2.IMWRITE_JPEG_QUALITY, 85])
     return summary
@@ -174,8 +182,9 @@ def run(args) -> int:
                 raise FileNotFoundError(f"{args.bop} is not a BOP scene folder (no scene_gt.json)")
             frames = bop_frames(args.bop, args.obj_id)
         else:
-            frames = rendered_frames(object_path, args.frames, args.seed, args.scenes)
-        summary = evaluate(args.model, object_path, frames, args.out, zoom=not args.no_zoom, sheet=args.sheet)
+            frames = rendered_frames(object_path, args.frames, args.seed, args.scenes, args.roll_deg)
+        summary = evaluate(args.model, object_path, frames, args.out, zoom=not args.no_zoom, sheet=args.sheet,
+                           rotations=args.rotations)
     except (FileNotFoundError, ValueError) as exc:
         print(f"evaluate: {exc}", file=sys.stderr)
         return 2
