@@ -4,8 +4,10 @@ Per frame: the image is halved (area averaging) and the network predicts the obj
 pixel, unit vectors towards the object's keypoints. The largest mask component locates the object
 (objects that look small there are looked for again at full resolution); a second pass on a crop
 scaled so that the object's box is about `zoom_object_px` wide (the sizes it was mostly trained
-on, and more pixels on small far objects) gives the field that is voted on. The 2D
-keypoints then go through the `pnp` estimator, the one PnP solver of the project.
+on, and more pixels on small far objects) gives the field that is voted on; that crop is also
+run turned by 90, 180 and 270 degrees (`rotations`), each turn a candidate of its own, for a device
+rolled further than the training views were. The 2D keypoints then go through the `pnp`
+estimator, the one PnP solver of the project.
 
 The network is tied to one object: its ONNX metadata holds the 3D keypoints it was trained for,
 and loading refuses a model whose keypoints differ from the object's registered ones.
