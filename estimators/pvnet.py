@@ -215,27 +215,33 @@ class PvnetEstimator(Estimator):
         # A candidate far smaller than the largest is a blob of false mask (a table leg), and its few
         # consistent votes can give a confident-looking pose: only those near the largest's size go on.
         found = [[c for c in f if len(c[0]) >= self.candidate_share * len(f[0][0])] for f in found]
-        fields = [[(c[0], c[1], 0) for c in f] for f in found]  # per frame, the fields voted on, with their turn
-        pairs = [(i, j) for i in range(n) for j in range(len(found[i]))]
-        if self.zoom and pairs:
-            crops = [self._zoom_crop(images[i], halves[i], found[i][j][2]) for i, j in pairs]
-            turns = [(p, t) for p in range(len(pairs)) for t in range(0, 4, 4 // self.rotations)]
-            outs = self._run([np.rot90(crops[p][0], t) for p, t in turns])
-            zoomed: list[list] = [[] for _ in pairs]
-            for (p, t), out in zip(turns, outs):
-                masks = _components(out[0] > 0, 1, self.min_mask_px)
-                if masks:
-                    rows, cols, vec = self._field(out, masks[0])
-                    pts, vec = _unturn(np.stack([OUTPUT_STRIDE * cols + 0.5, OUTPUT_STRIDE * rows + 0.5], axis=1),
-                                       vec, t, self.zoom_size)
-                    _, scale, off = crops[p]
-                    zoomed[p].append(((pts - off) / scale, vec, t))
-            # a candidate whose crop shows no mask in any turn keeps its whole-frame field
-            fields = [[] for _ in range(n)]
-            for p, (i, j) in enumerate(pairs):
-                fields[i] += zoomed[p] or [(found[i][j][0], found[i][j][1], 0)]
+        if self.zoom and any(found):
+            fields = self._crop_fields(images, halves, found)
+        else:  # per frame, the fields voted on, with the turn they were seen in
+            fields = [[(c[0], c[1], 0) for c in f] for f in found]
         inference_ms = (time.perf_counter() - t0) * 1e3 / n
         return [self._solve(inp, cands, inference_ms) for inp, cands in zip(inputs, fields)]
+
+    def _crop_fields(self, images: list, halves: list, found: list[list]) -> list[list]:
+        """Per frame, the fields of the crop pass: one per candidate and turn of its crop, mapped back to
+        frame pixels, with the turn; a candidate whose crop shows no mask in any turn keeps its
+        whole-frame field."""
+        pairs = [(i, j) for i in range(len(found)) for j in range(len(found[i]))]
+        crops = [self._zoom_crop(images[i], halves[i], found[i][j][2]) for i, j in pairs]
+        turns = [(p, t) for p in range(len(pairs)) for t in range(0, 4, 4 // self.rotations)]
+        zoomed: list[list] = [[] for _ in pairs]
+        for (p, t), out in zip(turns, self._run([np.rot90(crops[p][0], t) for p, t in turns])):
+            masks = _components(out[0] > 0, 1, self.min_mask_px)
+            if masks:
+                rows, cols, vec = self._field(out, masks[0])
+                pts, vec = _unturn(np.stack([OUTPUT_STRIDE * cols + 0.5, OUTPUT_STRIDE * rows + 0.5], axis=1),
+                                   vec, t, self.zoom_size)
+                _, scale, off = crops[p]
+                zoomed[p].append(((pts - off) / scale, vec, t))
+        fields: list[list] = [[] for _ in found]
+        for p, (i, j) in enumerate(pairs):
+            fields[i] += zoomed[p] or [(found[i][j][0], found[i][j][1], 0)]
+        return fields
 
     def _solve(self, inp: EstimateInput, candidates: list, inference_ms: float) -> EstimateOutput:
         """Votes and solves each candidate; the most confident pose wins, a turned crop's only by a factor

@@ -63,7 +63,7 @@ def network_options(kind: str, seed: int) -> NetworkOptions:
 
 def overrides(pairs: list[str]) -> dict:
     """["gravity_follow=0.5", "pia=false"] -> {"gravity_follow": 0.5, "pia": False}; ValueError on a bad one."""
-    known = {f.name: f.type for f in fields(TrackerOptions)}
+    known = {f.name for f in fields(TrackerOptions)}
     out = {}
     for pair in pairs:
         name, sep, value = pair.partition("=")
