@@ -44,6 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stream-headroom", type=float, default=0.8,
                         help="overload run: --max-streams = this share of the measured capacity")
     parser.add_argument("--no-overload", action="store_true", help="skip the run at twice the capacity")
+    parser.add_argument("--capacity", type=int,
+                        help="skip the ramps and take this as the capacity (overload run only, e.g. to compare "
+                             "server settings at the capacity an earlier run measured)")
     parser.add_argument("--server-cpus", help="pin each server process to these CPUs, e.g. 1 (default: no pinning)")
     parser.add_argument("--client-cpus", help="pin the load generator to these CPUs, e.g. 0: on a small machine "
                         "a load generator sharing the server's cores takes CPU from it, and its own timings suffer")
@@ -88,8 +91,9 @@ def _overload(name: str, spec: runner.LoadSpec, work: workload.Workload, clients
     summary = report.write_all(result, out / name, stem="overload")
     refused = [s.latency_ms for s in result.samples if s.outcome == "grpc:RESOURCE_EXHAUSTED"]
     print(f"{name}: overload at {clients} clients\n{report.format_summary(summary)}", flush=True)
-    print(f"  lone probe device: {len(probed.get('refused_ms', []))} refusals, p50/p99/max {probe_ms['p50_ms']}/"
-          f"{probe_ms['p99_ms']}/{probe_ms['max_ms']} ms, {probed.get('admitted')} admitted", flush=True)
+    shown = "/".join("-" if probe_ms[k] is None else f"{probe_ms[k]:.1f}" for k in ("p50_ms", "p99_ms", "max_ms"))
+    print(f"  lone probe device: {len(probed.get('refused_ms', []))} refusals, p50/p99/max {shown} ms, "
+          f"{probed.get('admitted')} admitted", flush=True)
     try:
         servers.wait_serving(server.address, timeout_s=5, process=server.process)
         up = True
@@ -101,6 +105,30 @@ def _overload(name: str, spec: runner.LoadSpec, work: workload.Workload, clients
             "probe_refused_ms": probe_ms, "probe_admitted": probed.get("admitted"),
             "rejected_share": 1 - summary["outcomes"].get("OK", 0) / max(1, summary["answered"]),
             "outcomes": summary["outcomes"]}
+
+
+def _ramps(names: list[str], works: dict, serve_args: list[str], base: runner.LoadSpec, server_cpus, args,
+           out: Path) -> dict:
+    """Each backend's capacity: the echo servicer's and each estimator's, the median over `args.repeats` rounds."""
+    running = {"echo": servers.start_echo(cpus=server_cpus)}
+    try:
+        for n in names:
+            running[n] = servers.start_serve(serve_args, n, log_path=out / f"{n}_server.log", cpus=server_cpus)
+        # Rounds alternate the order of the backends, so that load from elsewhere on the machine falls
+        # on all of them alike; each backend's figure is the median over the rounds.
+        rounds: dict[str, list[dict]] = {n: [] for n in running}
+        for r in range(args.repeats):
+            for n in (list(running) if r % 2 == 0 else list(running)[::-1]):
+                spec = replace(base, targets=(running[n].address,))
+                rounds[n].append(_ramp(n, spec, works[n], args, out / f"round{r}"))
+    finally:
+        exit_codes = {n: server.stop() for n, server in running.items()}
+    backends = {}
+    for n, entries in rounds.items():
+        entries.sort(key=lambda e: e["capacity_clients"])
+        backends[n] = dict(entries[len(entries) // 2], rounds=[e["capacity_clients"] for e in entries],
+                           exit_code=exit_codes[n])
+    return backends
 
 
 def run(args: argparse.Namespace) -> int:
@@ -126,23 +154,10 @@ def run(args: argparse.Namespace) -> int:
         names = [n for n in args.estimators.split(",") if n]
         works = {"echo": workload.synthetic(args.payload_kb, fps=args.fps),
                  **{n: workload.from_sequence(sequence, args.payload_kb, n) for n in names}}
-        running = {"echo": servers.start_echo(cpus=server_cpus)}
-        try:
-            for n in names:
-                running[n] = servers.start_serve(serve_args, n, log_path=out / f"{n}_server.log", cpus=server_cpus)
-            # Rounds alternate the order of the backends, so that load from elsewhere on the machine falls
-            # on all of them alike; each backend's figure is the median over the rounds.
-            rounds: dict[str, list[dict]] = {n: [] for n in running}
-            for r in range(args.repeats):
-                for n in (list(running) if r % 2 == 0 else list(running)[::-1]):
-                    spec = replace(base, targets=(running[n].address,))
-                    rounds[n].append(_ramp(n, spec, works[n], args, out / f"round{r}"))
-        finally:
-            exit_codes = {n: server.stop() for n, server in running.items()}
-        for n, entries in rounds.items():
-            entries.sort(key=lambda e: e["capacity_clients"])
-            results["backends"][n] = dict(entries[len(entries) // 2], rounds=[e["capacity_clients"] for e in entries],
-                                          exit_code=exit_codes[n])
+        if args.capacity:
+            results["backends"] = {n: {"capacity_clients": args.capacity, "given": True} for n in names}
+        else:
+            results["backends"] = _ramps(names, works, serve_args, base, server_cpus, args, out)
         for n in ([] if args.no_overload else names):
             # The operator's setting from this figure: a little under `capacity` devices per replica, so that
             # the event loop keeps the headroom to refuse the rest at once.
@@ -156,13 +171,18 @@ def run(args: argparse.Namespace) -> int:
             finally:
                 overload["exit_code"] = server.stop()
             results["backends"][n]["overload"] = dict(overload, max_streams=max_streams)
-    echo_fps = results["backends"]["echo"]["ok_fps_at_capacity"] or float("nan")
-    print(f"\n{'backend':<12}{'clients@p99<' + format(args.p99_bound_ms, 'g') + 'ms':>20}{'rounds':>16}{'OK/s':>9}"
+    if not args.capacity:
+        _print_against_echo(results["backends"], args.p99_bound_ms)
+    (out / "capacity.json").write_text(json.dumps(results, indent=2))
+    print(f"wrote {out}/capacity.json" + (" (capacity given: no ramps)" if args.capacity else " and a ramp per backend"))
+    return 0
+
+
+def _print_against_echo(backends: dict, p99_bound_ms: float) -> None:
+    echo_fps = backends["echo"]["ok_fps_at_capacity"] or float("nan")
+    print(f"\n{'backend':<12}{'clients@p99<' + format(p99_bound_ms, 'g') + 'ms':>20}{'rounds':>16}{'OK/s':>9}"
           f"{'vs echo':>9}")
-    for name, entry in results["backends"].items():
+    for name, entry in backends.items():
         entry["fps_vs_echo"] = entry["ok_fps_at_capacity"] / echo_fps
         print(f"{name:<12}{entry['capacity_clients']:>20}{entry['rounds']!s:>16}{entry['ok_fps_at_capacity']:>9.0f}"
               f"{entry['fps_vs_echo']:>9.2f}")
-    (out / "capacity.json").write_text(json.dumps(results, indent=2))
-    print(f"wrote {out}/capacity.json and a ramp per backend")
-    return 0

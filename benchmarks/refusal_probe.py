@@ -4,7 +4,8 @@ Why: in an overload run the load generator's one event loop drives hundreds of s
 refusal times it records include its own queueing. This probe, a separate process that does
 nothing else, opens a `Track` stream every INTERVAL_S, waits for the server's answer to it
 (initial metadata when admitted, RESOURCE_EXHAUSTED when refused), closes it and prints one JSON
-line: the refusal times in ms and the count of streams admitted.
+line: the refusal times in ms and the count of streams admitted. It ignores the server's retry
+pushback on purpose: it times refusals, it is not a patient device.
 """
 
 from __future__ import annotations

@@ -4,8 +4,8 @@
 PRM keeps one in flight; a request it abandons may still be answered, and the answer is delivered
 like any other) and hands each response to `on_response` on its own thread. When the server goes away, a request outlives its deadline or the
 stream breaks, every request in flight is reported to `on_failure` (so the tracker can re-request)
-and the client reconnects with exponential backoff and jitter. Nothing it does raises into the
-caller.
+and the client reconnects with exponential backoff and jitter, or later where a server at capacity
+says when (gRPC's `grpc-retry-pushback-ms` trailer). Nothing it does raises into the caller.
 
 `make_request` builds an `EstimateRequest` carrying the frame (JPEG bytes from the shell, which
 sends a stand-in of the paper's 90 kB when it renders no image) and the tracker's ~10 kB state as
@@ -42,6 +42,7 @@ class TransportOptions:
     backoff_multiplier: float = 2.0
     jitter: float = 0.2  # each wait is scaled by U(1 - jitter, 1 + jitter)
     seed: int = 0  # for the jitter
+    pushback_max_s: float = 10.0  # the longest a server's retry pushback may park the device
 
 
 def make_request(*, frame_id: int, capture_time_ns: int, session_id: str = "", estimator: str = "",
@@ -54,6 +55,21 @@ def make_request(*, frame_id: int, capture_time_ns: int, session_id: str = "", e
         estimator=estimator, object_id=object_id, sequence=sequence,
         image=None if image is None else pb.Image(encoding=encoding, data=image, width=width, height=height),
         intrinsics=intrinsics, client_state=client_state)
+
+
+PUSHBACK_KEY = "grpc-retry-pushback-ms"
+
+
+def retry_pushback_s(trailing_metadata) -> float:
+    """The wait a refusing server asks for in its `grpc-retry-pushback-ms` trailer, in s (0: none, or unreadable)."""
+    for key, value in trailing_metadata or ():
+        if key == PUSHBACK_KEY:
+            try:
+                ms = float(value)
+            except ValueError:
+                return 0.0
+            return ms / 1e3 if ms >= 0 else 0.0  # NaN and negatives ask for nothing
+    return 0.0
 
 
 class Backoff:
@@ -97,6 +113,7 @@ class TrackClient:
         self._in_flight: dict[int, float] = {}  # frame id -> monotonic send time
         self._threads: list[threading.Thread] = []
         self.reconnects = 0
+        self._pushback_s = 0.0  # what the server asked of the last stream's retry
 
     # -- the caller's side ---------------------------------------------------------------------
     def start(self) -> TrackClient:
@@ -152,7 +169,8 @@ class TrackClient:
             if self._stop.is_set():
                 break
             self.reconnects += 1
-            self._stop.wait(self._backoff.next_s())
+            pushback, self._pushback_s = min(self._pushback_s, self.options.pushback_max_s), 0.0
+            self._stop.wait(max(self._backoff.next_s(), pushback))
 
     def _one_stream(self) -> str:
         """Open a channel and a stream, pump responses until it breaks; returns why it ended."""
@@ -176,6 +194,7 @@ class TrackClient:
                     self._deliver(self._on_response, response)
                 return "stream ended by the server"
             except grpc.RpcError as exc:
+                self._pushback_s = retry_pushback_s(exc.trailing_metadata())
                 return f"stream broke: {exc.code().name} {exc.details() or ''}".strip()
             finally:
                 with self._lock:

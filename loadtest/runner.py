@@ -8,8 +8,9 @@ skipped frames would have to be rebuilt inside it anyway, through a second concu
 
 Each client ticks at `fps`. At a tick it sends the frame if nothing is in flight; ticks that pass
 while a request is out are counted as skipped frames, as a device would drop them. After a failed
-call (a gRPC error: server gone, stream refused) it backs off exponentially with jitter before the
-next attempt, as the SDK's TrackClient does. Every answer is
+call (a gRPC error: server gone, stream refused) it backs off exponentially with jitter, or as long
+as a refusing server's `grpc-retry-pushback-ms` asks, before the next attempt, as the SDK's
+TrackClient does. Every answer is
 one `Sample`: send time, latency and an outcome label, `OK`, `status:<EstimateResponse.Status>` or
 `grpc:<StatusCode>` for a failed call or stream.
 """
@@ -23,6 +24,7 @@ from dataclasses import dataclass, field
 import grpc
 import numpy as np
 
+from client_sdk.transport import TransportOptions, retry_pushback_s
 from flextrack.v1 import pose_estimation_pb2 as pb
 from loadtest.workload import Workload
 
@@ -31,6 +33,7 @@ ESTIMATE = "/flextrack.v1.PoseEstimation/Estimate"
 MAX_MESSAGE_BYTES = 16 * 1024 * 1024
 CONNECT_SETTLE_S = 0.5  # time for a channel to connect to every address of a multi-address target
 BACKOFF_INITIAL_S, BACKOFF_MAX_S = 0.05, 1.0  # after a failed call, as client_sdk.transport's defaults begin
+PUSHBACK_MAX_S = TransportOptions.pushback_max_s
 
 
 @dataclass(frozen=True)
@@ -135,6 +138,7 @@ async def _client(idx: int, spec: LoadSpec, workload: Workload, channel: grpc.ai
                 return
             request = workload.request(idx, frame)
             sent = time.perf_counter()
+            pushback = 0.0
             try:
                 if spec.rpc == "estimate":
                     outcome = _outcome(await estimate(request, timeout=spec.deadline_s, metadata=spec.metadata))
@@ -148,21 +152,23 @@ async def _client(idx: int, spec: LoadSpec, workload: Workload, channel: grpc.ai
                         await call.write(request)
                         response = await asyncio.wait_for(call.read(), spec.deadline_s)
                     if response is grpc.aio.EOF:  # refused, or ended by the server: count it, open a new one
+                        pushback = retry_pushback_s(await call.trailing_metadata())
                         outcome, call = f"grpc:{(await call.code()).name}", None
                     else:
                         outcome = _outcome(response)
             except grpc.aio.AioRpcError as exc:
                 # a write to a stream the server already ended fails with INTERNAL: the call's status says why
                 code = (await call.code()) if call is not None and call.done() else exc.code()
+                pushback = retry_pushback_s(exc.trailing_metadata())
                 outcome, call = f"grpc:{code.name}", _cancel(call)
             except (TimeoutError, grpc.aio.UsageError):
                 outcome, call = "grpc:DEADLINE_EXCEEDED", _cancel(call)
             done = time.perf_counter()
             frame += 1
-            # A failed call backs off as a device's client does (exponential, jittered); frames meanwhile
-            # are tracked on the IMU, i.e. skipped here.
+            # A failed call backs off as a device's client does (exponential, jittered, or as long as the
+            # server's pushback asks); frames meanwhile are tracked on the IMU, i.e. skipped here.
             failures = failures + 1 if outcome.startswith("grpc:") else 0
-            retry_at = done + (_backoff_s(failures, jitter) if failures else 0.0)
+            retry_at = done + (max(_backoff_s(failures, jitter), min(pushback, PUSHBACK_MAX_S)) if failures else 0.0)
             ticks = max(1, int(np.ceil((retry_at - next_tick) / period)))  # the next tick after the answer
             next_tick += ticks * period
             if sent >= clock.measure_from:

@@ -15,8 +15,12 @@ server's own transport (a cheap estimator, 100 kB frames), refusing single frame
 refused frame was still received and parsed. There the bound that works is on devices: past
 `max_streams` open Track streams a new stream fails at once with RESOURCE_EXHAUSTED, before any frame
 is read; the device keeps tracking on its IMU and retries with backoff (or, behind round_robin, is
-served by another replica). Health checks are never bounded. An admitted stream gets its initial
-metadata at once: a client can wait for admission (metadata or refusal) before its first frame.
+served by another replica). The refusal carries gRPC's `grpc-retry-pushback-ms` trailer (about
+`retry_pushback_ms`, jittered so that devices refused together do not come back together): a
+device that waits that long spares the server a retry storm, in which every refusal is work on the
+same event loop that serves the admitted streams. Health checks are never bounded. An admitted
+stream gets its initial metadata at once: a client can wait for admission (metadata or refusal)
+before its first frame.
 
 The interceptor also feeds the metrics (service.metrics): every answer's outcome and latency, and
 the queue depth, and parses the request bytes itself, so that bytes that are not a request message
@@ -27,6 +31,7 @@ with a Python exception name. It wraps the servicer's handlers: the servicer kno
 from __future__ import annotations
 
 import asyncio
+import random
 import time
 from collections import defaultdict
 from collections.abc import Callable
@@ -39,6 +44,7 @@ from service.metrics import ServiceMetrics
 
 SERVICE_PREFIX = "/flextrack.v1.PoseEstimation/"
 REJECTED_CODE = "RESOURCE_EXHAUSTED"
+PUSHBACK_KEY = "grpc-retry-pushback-ms"  # gRPC's own trailer for "retry no sooner than this" (gRFC A6)
 
 
 def overload_message(estimator: str, limit: int) -> str:
@@ -53,10 +59,13 @@ class AdmissionInterceptor(grpc.aio.ServerInterceptor):
     """
 
     def __init__(self, max_queue: int = 0, metrics: ServiceMetrics | None = None,
-                 resolve: Callable[[str], str] | None = None, max_streams: int = 0):
-        if max_queue < 0 or max_streams < 0:
-            raise ValueError(f"max_queue and max_streams must be >= 0 (0 = unbounded), got {max_queue}, {max_streams}")
+                 resolve: Callable[[str], str] | None = None, max_streams: int = 0, retry_pushback_ms: float = 0.0):
+        if max_queue < 0 or max_streams < 0 or not retry_pushback_ms >= 0:
+            raise ValueError(f"max_queue, max_streams and retry_pushback_ms must be >= 0 (0 = unbounded / none), "
+                             f"got {max_queue}, {max_streams}, {retry_pushback_ms}")
         self.max_queue, self.max_streams = max_queue, max_streams
+        self.retry_pushback_ms = retry_pushback_ms
+        self._jitter = random.Random(0)
         self.streams = 0  # open Track streams
         self.metrics = metrics
         self.resolve = resolve or (lambda name: name or "default")
@@ -123,6 +132,9 @@ class AdmissionInterceptor(grpc.aio.ServerInterceptor):
         async def track(raw_iterator, context):
             if self.max_streams and self.streams >= self.max_streams:
                 self._observe("Track", "-", REJECTED_CODE, None)
+                if self.retry_pushback_ms:
+                    pushback = self.retry_pushback_ms * self._jitter.uniform(0.5, 1.5)
+                    context.set_trailing_metadata(((PUSHBACK_KEY, str(round(pushback))),))
                 await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED,
                                     f"server is at capacity ({self.max_streams} streams); retry with backoff")
             self.streams += 1  # counted before the first await, so that two new streams cannot both slip in

@@ -39,6 +39,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--max-streams", type=int, default=0,
                        help="open Track streams (devices) served at once; past it a new stream fails at once with "
                             "RESOURCE_EXHAUSTED (0 = no bound; set it from `flextrack bench capacity`)")
+    group.add_argument("--retry-pushback-ms", type=float, default=2000.0,
+                       help="a refused stream tells its device to wait about this long (jittered +-50 %%) before it "
+                            "retries, in gRPC's grpc-retry-pushback-ms trailer (0 = say nothing)")
     group.add_argument("--max-batch", type=int, default=1,
                        help="dynamic batching: most frames per call of an estimator that can batch (1 = off)")
     group.add_argument("--batch-delay-ms", type=float, default=2.0,
@@ -54,6 +57,7 @@ class Hardening:
     tokens: list[str] = field(default_factory=list)
     max_queue: int = 0
     max_streams: int = 0
+    retry_pushback_ms: float = 2000.0
     max_batch: int = 1
     batch_delay_ms: float = 2.0
     metrics_port: int = 0
@@ -68,14 +72,15 @@ class Hardening:
             raise ValueError("--client-ca (mutual TLS) needs --tls-cert and --tls-key")
         if self.max_batch < 1 or self.batch_delay_ms < 0 or self.metrics_port < 0:
             raise ValueError("--max-batch >= 1, --batch-delay-ms >= 0 and --metrics-port >= 0 are required")
-        self.admission = AdmissionInterceptor(self.max_queue, self.metrics, max_streams=self.max_streams)
+        self.admission = AdmissionInterceptor(self.max_queue, self.metrics, max_streams=self.max_streams,
+                                              retry_pushback_ms=self.retry_pushback_ms)
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> Hardening:
         """Read the flags of add_arguments; files are read now, so a bad path fails before serving."""
         tokens = security.load_tokens(args.token_file) if args.token_file else []
         hardening = cls(args.tls_cert, args.tls_key, args.client_ca, tokens, args.max_queue, args.max_streams,
-                        args.max_batch, args.batch_delay_ms, args.metrics_port)
+                        args.retry_pushback_ms, args.max_batch, args.batch_delay_ms, args.metrics_port)
         hardening.credentials()  # reads and checks the PEM files
         return hardening
 

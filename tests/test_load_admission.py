@@ -92,14 +92,14 @@ def test_metrics_endpoint_serves_counts_latency_and_queue_depth(slow_server):
 
 
 def test_negative_bound_is_refused():
-    with pytest.raises(ValueError, match="max_queue and max_streams"):
+    with pytest.raises(ValueError, match="max_queue, max_streams and retry_pushback_ms"):
         AdmissionInterceptor(-1)
 
 
 def test_stream_bound_refuses_new_devices_at_once_and_keeps_health_open():
     estimator, hardening = SlowEstimator(0.002), Hardening(max_streams=2)
     with BackgroundServer(EstimatorRegistry([estimator]), grace_s=0.0, hardening=hardening) as srv:
-        spec = runner.LoadSpec((srv.address,), clients=5, fps=30, duration_s=1.0, warmup_s=0.5,
+        spec = runner.LoadSpec((srv.address,), clients=5, fps=30, duration_s=1.0, warmup_s=0.0,
                                await_admission=True)
         result = runner.run(spec, workload.synthetic(payload_kb=5, frames=2))
         with grpc.insecure_channel(srv.address) as channel:
@@ -110,6 +110,32 @@ def test_stream_bound_refuses_new_devices_at_once_and_keeps_health_open():
     assert health.status == health_pb2.HealthCheckResponse.SERVING
     refusals = sum(s.client in refused for s in result.samples)
     assert hardening.metrics.count("RESOURCE_EXHAUSTED", "Track", "-") >= refusals
+    # the refusals ask for ~2 s (1-3 s) before a retry, and the load generator waits: at most two in the 1 s run
+    # (backoff alone would retry after 50, 100, 200, 400 ms: five)
+    assert max(sum(s.client == c for s in result.samples) for c in refused) <= 2
+
+
+def _no_frames_until(stop: threading.Event):
+    stop.wait(10)
+    yield from ()
+
+
+def test_a_refused_stream_says_when_to_retry_jittered():
+    hardening = Hardening(max_streams=1, retry_pushback_ms=400)
+    with BackgroundServer(EstimatorRegistry([SlowEstimator()]), grace_s=0.0, hardening=hardening) as srv, \
+            grpc.insecure_channel(srv.address) as channel:
+        stub, stop = pb_grpc.PoseEstimationStub(channel), threading.Event()
+        held = stub.Track(_no_frames_until(stop))  # the only slot
+        held.initial_metadata()
+        pushbacks = []
+        for _ in range(6):
+            with pytest.raises(grpc.RpcError) as refused:
+                list(stub.Track(iter(()), timeout=5))
+            assert refused.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+            pushbacks.append(dict(refused.value.trailing_metadata())["grpc-retry-pushback-ms"])
+        stop.set()
+        held.cancel()
+    assert all(200 <= int(ms) <= 600 for ms in pushbacks) and len(set(pushbacks)) > 1
 
 
 def test_the_refusal_probe_times_a_full_server_and_passes_an_open_one():
@@ -119,13 +145,8 @@ def test_the_refusal_probe_times_a_full_server_and_passes_an_open_one():
     with BackgroundServer(EstimatorRegistry([estimator]), grace_s=0.0, hardening=hardening) as srv:
         assert probe(srv.address, 0.3, 0.05)["admitted"] >= 1  # a free slot: admitted
         stop = threading.Event()
-
-        def no_frames_until_stopped():
-            stop.wait(10)
-            yield from ()
-
         with grpc.insecure_channel(srv.address) as channel:  # a device holding the only slot
-            held = pb_grpc.PoseEstimationStub(channel).Track(no_frames_until_stopped())
+            held = pb_grpc.PoseEstimationStub(channel).Track(_no_frames_until(stop))
             held.initial_metadata()
             full = probe(srv.address, 0.3, 0.05)
             stop.set()

@@ -68,3 +68,15 @@ def test_bad_targets_and_options_are_refused_clearly(tmp_path, capsys):
     assert "IPv4 host:port" in capsys.readouterr().err
     assert main(["loadtest", "--target", "127.0.0.1:1", "--clients", "0", "--out", str(tmp_path)]) == 2
     assert runner.grpc_target(["127.0.0.1:5", "127.0.0.1:6"]) == "ipv4:127.0.0.1:5,127.0.0.1:6"
+
+
+def test_bench_capacity_overload_run_at_a_given_capacity(tmp_path, capsys):
+    """The overload half of `flextrack bench capacity` on a real `flextrack serve` process: twice the given
+    capacity, the excess refused with RESOURCE_EXHAUSTED (and a lone probe's refusals timed), the server up."""
+    rc = main(["bench", "capacity", "--capacity", "4", "--step-s", "1.5", "--payload-kb", "10", "--out", str(tmp_path)])
+    assert rc == 0
+    overload = json.loads((tmp_path / "capacity.json").read_text())["backends"]["gt_oracle"]["overload"]
+    assert overload["clients"] == 8 and overload["max_streams"] == 3 and overload["server_up_after"]
+    assert overload["outcomes"]["OK"] > 0 and overload["outcomes"]["grpc:RESOURCE_EXHAUSTED"] > 0
+    assert overload["probe_refused_ms"]["p50_ms"] > 0  # the probe (every 0.1 s, ignoring pushback) was refused
+    assert "capacity given: no ramps" in capsys.readouterr().out

@@ -8,11 +8,12 @@ import pytest
 
 from client_sdk import network_model as nm
 from client_sdk.interceptor import LatencyInterceptor
-from client_sdk.transport import TrackClient, TransportOptions, make_request
+from client_sdk.transport import TrackClient, TransportOptions, make_request, retry_pushback_s
 from estimators.registry import EstimatorRegistry
 from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
 from runners.payload import PAPER_JPEG_BYTES, stand_in_jpeg
+from service.hardening import Hardening
 from service.server import BackgroundServer
 
 FAST = TransportOptions(request_timeout_s=2.0, connect_timeout_s=0.2, backoff_initial_s=0.02, backoff_max_s=0.2)
@@ -137,3 +138,36 @@ def test_unreachable_backend_never_raises():
     with TrackClient("127.0.0.1:1", inbox.on_response, inbox.on_failure, options=FAST) as client:
         assert not client.wait_connected(0.3)
         assert not client.submit(_request(1))
+
+
+@pytest.mark.parametrize("value, seconds", [("1500", 1.5), ("0", 0.0), ("-5", 0.0), ("nan", 0.0), ("soon", 0.0)])
+def test_retry_pushback_is_read_from_the_trailer(value, seconds):
+    assert retry_pushback_s((("other", "7"), ("grpc-retry-pushback-ms", value))) == seconds
+    assert retry_pushback_s(None) == 0.0
+
+
+def _refusals_seen_by_a_full_server(pushback_ms: float, seconds: float = 1.0) -> int:
+    """A TrackClient retries against a server whose only stream slot is held; how often was it refused?"""
+    hardening = Hardening(max_streams=1, retry_pushback_ms=pushback_ms)
+    stop = threading.Event()
+
+    def no_frames():
+        stop.wait(10)
+        yield from ()
+
+    with BackgroundServer(EstimatorRegistry(), grace_s=0.0, hardening=hardening) as srv, \
+            grpc.insecure_channel(srv.address) as channel:
+        held = pb_grpc.PoseEstimationStub(channel).Track(no_frames())
+        held.initial_metadata()
+        inbox = _Inbox()
+        with TrackClient(srv.address, inbox.on_response, inbox.on_failure, options=FAST):
+            time.sleep(seconds)
+        stop.set()
+        held.cancel()
+    return hardening.metrics.count("RESOURCE_EXHAUSTED", "Track", "-")
+
+
+def test_track_client_waits_as_long_as_a_refusing_server_asks():
+    eager = _refusals_seen_by_a_full_server(pushback_ms=0)  # backoff alone: 20 ms doubling to 200 ms
+    patient = _refusals_seen_by_a_full_server(pushback_ms=1000)  # 0.5-1.5 s between tries
+    assert eager >= 4 and 1 <= patient <= 2, (eager, patient)

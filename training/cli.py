@@ -37,6 +37,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--views", type=int, default=4000, help="object-only renders to train from")
     p.add_argument("--minutes", type=float, default=55.0, help="wall-time budget for the optimisation")
     p.add_argument("--width", type=int, default=32, help="network channel width")
+    p.add_argument("--turn-deg", type=float, default=180.0,
+                   help="in-plane turn augmentation of the object, +- degrees (180: any camera roll)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--resume", action="store_true", help="continue from the run folder's checkpoint")
     p.add_argument("--init", type=Path, help="start from this checkpoint's network weights (same width and keypoint count)")
@@ -61,7 +63,8 @@ def _train(args) -> int:
     model_path = resolve_object(args.object)
     obj = load_object(model_path.stem, model_path)
     cfg = TrainConfig(steps=args.steps, batch=args.batch, size=args.size, seed=args.seed, views=args.views,
-                      minutes=args.minutes, width=args.width, threads=args.threads)
+                      minutes=args.minutes, width=args.width, threads=args.threads,
+                      turn_deg=args.turn_deg)
     t0 = time.time()
     ckpt = train(obj, args.out, cfg, resume=args.resume, tqdm=tqdm, init=args.init)
     log = json.loads((args.out / "log.json").read_text())

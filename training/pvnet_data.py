@@ -222,8 +222,12 @@ class PatchSampler:
     """Random training patches (images, masks, keypoints) from object-only crops."""
 
     def __init__(self, views: RenderedViews, size: int = 128, seed: int = 0, textures=(),
-                 normalised_share: float = 0.7, normalised_px: tuple[float, float] = (44.0, 84.0)):
+                 normalised_share: float = 0.7, normalised_px: tuple[float, float] = (44.0, 84.0),
+                 turn_deg: float = 180.0):
         self.views = views
+        # In-plane turn of the object up to +-turn_deg: a hand-held camera rolls freely, so the
+        # network must find keypoints at any roll, not only near the upright views it was rendered in.
+        self.turn_deg = turn_deg
         self.textures = list(textures)
         # Most patches show the object at the size the estimator's crop pass gives it (its box side
         # about normalised_px); the rest at the size the distance gives (the whole-frame pass).
@@ -246,7 +250,7 @@ class PatchSampler:
             scale = np.exp(rng.uniform(*np.log(self.normalised_px))) / self.box_side[i]
         else:
             scale = np.exp(rng.uniform(np.log(0.7), np.log(1.35)))
-        angle = rng.uniform(-15, 15)
+        angle = rng.uniform(-self.turn_deg, self.turn_deg)
         centre = rng.uniform(-0.1 * s, 1.1 * s, size=2) if rng.random() < 0.3 else rng.uniform(0.2 * s, 0.8 * s, 2)
         M = cv2.getRotationMatrix2D((float(kp[-1, 0]), float(kp[-1, 1])), angle, scale)
         M[:, 2] += centre - kp[-1]

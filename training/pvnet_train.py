@@ -33,6 +33,7 @@ class TrainConfig:
     minutes: float = 55.0  # wall-time budget for the optimisation
     lr: float = 2e-3
     width: int = 32  # channel width of the network
+    turn_deg: float = 180.0  # in-plane turn augmentation, +- degrees
     threads: int = 2
     save_every_s: float = 60.0
 
@@ -77,7 +78,7 @@ def train(obj: ObjectModel, out_dir: Path, cfg: TrainConfig, resume: bool = Fals
 
     net = PvnetNet(len(obj.keypoints), cfg.width)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
-    sampler = PatchSampler(views, cfg.size, cfg.seed + 1, room_textures())
+    sampler = PatchSampler(views, cfg.size, cfg.seed + 1, room_textures(), turn_deg=cfg.turn_deg)
     state = {"step": 0, "elapsed_s": 0.0, "history": []}
     if resume and ckpt_path.exists():
         ck = torch.load(ckpt_path, weights_only=False)
