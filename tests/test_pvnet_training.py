@@ -12,7 +12,7 @@ from estimators.objects import load_object
 from flextrack.geometry import se3
 from flextrack.geometry.camera import PinholeCamera
 from training.cli import DEFAULT_OBJECT
-from training.pvnet_data import PatchSampler, full_to_input, render_views, targets
+from training.pvnet_data import PatchSampler, RenderedViews, full_to_input, render_views, targets
 
 
 @pytest.fixture(scope="module")
@@ -46,6 +46,18 @@ def test_patches_and_targets_are_consistent(views):
     d = kps[b, :, :] - np.array([2 * j + 0.5, 2 * i + 0.5])
     assert np.allclose(vec[b].reshape(9, 2, 32, 32)[:, :, i, j], d / np.linalg.norm(d, axis=1, keepdims=True),
                        atol=1e-4)
+
+
+def test_patches_turn_the_object_as_far_as_asked(views):
+    """The in-plane turn of a patch (the keypoint layout about the centre) stays within +-turn_deg."""
+    _, v = views
+    one = RenderedViews(v.rgba[:1], v.keypoints[:1], v.poses[:1])
+    heading = lambda kp: np.degrees(np.arctan2(*(kp[..., 0, ::-1] - kp[..., -1, ::-1]).T))
+    turns = {}
+    for turn_deg in (15.0, 180.0):
+        _, _, kps = PatchSampler(one, size=64, seed=3, turn_deg=turn_deg).batch(200)
+        turns[turn_deg] = np.abs((heading(kps) - heading(one.keypoints[0]) + 180) % 360 - 180)
+    assert turns[15.0].max() < 15.01 and turns[180.0].max() > 150 and np.median(turns[180.0]) > 60
 
 
 def test_train_command_checkpoints_resumes_and_exports(tmp_path):
