@@ -245,9 +245,10 @@ class PvnetEstimator(Estimator):
 
     def _solve(self, inp: EstimateInput, candidates: list, inference_ms: float) -> EstimateOutput:
         """Votes and solves each candidate; the most confident pose wins, a turned crop's only by a factor
-        `turn_margin`: the network was trained on upright objects (modest camera roll), and in a crop
-        turned away from upright it still tends to see one, a pose some pixels off with a confidence
-        near the right one's. Turns are for views rolled far from upright, where the unturned crop fails."""
+        `turn_margin`: the network was trained on objects turned at most about 70 deg from upright, and
+        in a crop turned further it may still see an upright one, a pose some pixels off with a
+        confidence near the right one's. Turns are for views rolled far from upright, where the
+        unturned crop fails."""
         if not candidates:
             return EstimateOutput(Status.OBJECT_NOT_FOUND, message="the object mask is too small or empty",
                                   stage_ms={"inference": inference_ms})

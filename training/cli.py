@@ -37,8 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--views", type=int, default=4000, help="object-only renders to train from")
     p.add_argument("--minutes", type=float, default=55.0, help="wall-time budget for the optimisation")
     p.add_argument("--width", type=int, default=32, help="network channel width")
-    p.add_argument("--turn-deg", type=float, default=180.0,
-                   help="in-plane turn augmentation of the object, +- degrees (180: any camera roll)")
+    p.add_argument("--turn-deg", type=float, default=45.0,
+                   help="in-plane turn augmentation of the object, +- degrees (45: with the estimator's turned "
+                        "crops, any camera roll; 180: the network alone)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--resume", action="store_true", help="continue from the run folder's checkpoint")
     p.add_argument("--init", type=Path, help="start from this checkpoint's network weights (same width and keypoint count)")

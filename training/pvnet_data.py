@@ -223,10 +223,12 @@ class PatchSampler:
 
     def __init__(self, views: RenderedViews, size: int = 128, seed: int = 0, textures=(),
                  normalised_share: float = 0.7, normalised_px: tuple[float, float] = (44.0, 84.0),
-                 turn_deg: float = 180.0):
+                 turn_deg: float = 45.0):
         self.views = views
-        # In-plane turn of the object up to +-turn_deg: a hand-held camera rolls freely, so the
-        # network must find keypoints at any roll, not only near the upright views it was rendered in.
+        # In-plane turn of the object up to +-turn_deg: a hand-held camera rolls freely. The estimator
+        # also runs its crop turned by 90, 180 and 270 deg, which brings any roll within 45 deg of one
+        # of them, so +-45 covers every roll; +-180 (the network alone facing any roll) cost upright
+        # accuracy at this network size (docs/pvnet.md).
         self.turn_deg = turn_deg
         self.textures = list(textures)
         # Most patches show the object at the size the estimator's crop pass gives it (its box side

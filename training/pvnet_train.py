@@ -33,7 +33,7 @@ class TrainConfig:
     minutes: float = 55.0  # wall-time budget for the optimisation
     lr: float = 2e-3
     width: int = 32  # channel width of the network
-    turn_deg: float = 180.0  # in-plane turn augmentation, +- degrees
+    turn_deg: float = 45.0  # in-plane turn augmentation, +- degrees
     threads: int = 2
     save_every_s: float = 60.0
 
