@@ -6,7 +6,8 @@ generator (loadtest.ramp) searches the largest client count whose p99 stays unde
 the estimator's server, now started with `--max-streams` under that capacity (as an operator
 would set it from this figure), gets twice its capacity, one connection per device: it must stay
 up, refuse the excess devices at once with RESOURCE_EXHAUSTED (they wait as its retry pushback
-asks, as the SDK does) and keep the accepted frames' p99 bounded. `--max-queue` bounds each estimator's frame queue besides.
+asks, as the SDK does) and keep the accepted frames' p99 bounded. `--max-queue` bounds each
+estimator's frame queue besides.
 """
 
 from __future__ import annotations

@@ -57,7 +57,7 @@ def make_request(*, frame_id: int, capture_time_ns: int, session_id: str = "", e
         intrinsics=intrinsics, client_state=client_state)
 
 
-PUSHBACK_KEY = "grpc-retry-pushback-ms"
+PUSHBACK_KEY = "grpc-retry-pushback-ms"  # gRPC's trailer for "retry no sooner than this" (gRFC A6)
 
 
 def retry_pushback_s(trailing_metadata) -> float:

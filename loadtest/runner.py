@@ -10,9 +10,8 @@ Each client ticks at `fps`. At a tick it sends the frame if nothing is in flight
 while a request is out are counted as skipped frames, as a device would drop them. After a failed
 call (a gRPC error: server gone, stream refused) it backs off exponentially with jitter, or as long
 as a refusing server's `grpc-retry-pushback-ms` asks, before the next attempt, as the SDK's
-TrackClient does. Every answer is
-one `Sample`: send time, latency and an outcome label, `OK`, `status:<EstimateResponse.Status>` or
-`grpc:<StatusCode>` for a failed call or stream.
+TrackClient does. Every answer is one `Sample`: send time, latency and an outcome label, `OK`,
+`status:<EstimateResponse.Status>` or `grpc:<StatusCode>` for a failed call or stream.
 """
 
 from __future__ import annotations
