@@ -3,14 +3,16 @@
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
 pytest.importorskip("onnxruntime")
 
+from datasets import bop
 from flextrack.geometry import se3, so3
 from training.cli import DEFAULT_OBJECT
-from training.evaluate import evaluate, rendered_frames
+from training.evaluate import bop_frames, evaluate, rendered_frames
 
 SHIPPED = Path(__file__).resolve().parents[1] / "models" / "pvnet_default" / "pvnet.onnx"
 
@@ -32,3 +34,18 @@ def test_evaluation_scores_every_frame_and_writes_its_results(tmp_path):
     assert saved["rotations"] == 4 and len(saved["frames"]) == 3
     assert summary["rendered"]["frames"] == 3 and 0.0 <= summary["rendered"]["proj_below_5px"] <= 1.0
     assert (tmp_path / "poses.jpg").stat().st_size > 0
+
+
+def test_a_simulated_sequence_folder_is_scored_on_its_frames_with_an_image(tmp_path):
+    """A sequence folder has BOP ground truth for every frame but images only of the frames sent, and no
+    scene_gt_info.json: those frames, one group."""
+    K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1.0]])
+    poses = {f: se3.make(np.eye(3), [0.0, 0.0, 0.5 + 0.1 * f]) for f in range(3)}
+    bop.write_scene_gt(tmp_path / "scene_gt.json", poses, obj_id=1)
+    bop.write_scene_camera(tmp_path / "scene_camera.json", {f: K for f in poses})
+    (tmp_path / "rgb").mkdir()
+    for f in (0, 2):
+        cv2.imwrite(str(tmp_path / "rgb" / f"{f:06d}.png"), np.zeros((48, 64, 3), np.uint8))
+    frames = list(bop_frames(tmp_path, obj_id=1))
+    assert [name for name, *_ in frames] == ["000000", "000002"] and {f[4] for f in frames} == {"all"}
+    assert np.allclose(frames[1][3], poses[2]) and frames[1][2].width == 64

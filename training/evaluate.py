@@ -5,7 +5,8 @@ Two kinds of frames:
   from random viewpoints above it at 0.45-1.5 m with the object anywhere in view; the rooms, the
   poses and the camera's placement are drawn from seeds training never used;
 - `--bop SCENE_DIR --obj-id N`: real BOP frames (rgb/, scene_gt.json, scene_camera.json,
-  scene_gt_info.json), split by the visible fraction of the object.
+  scene_gt_info.json), split by the visible fraction of the object; or a simulated sequence's
+  folder (BOP files too), whose frames with an image are scored as one group.
 
 It reports, per group, the share of frames with mean 2D projection error below 5 px and with ADD
 below 10 % of the diameter (BOP definitions; a frame without a pose counts as a failure), writes
@@ -41,7 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--roll-deg", type=float, default=0.0,
                         help="rendered frames: the camera turned this far about its optical axis (training saw at "
                              "most about 40 deg of roll)")
-    parser.add_argument("--bop", type=Path, help="evaluate on a BOP scene folder instead of rendered frames")
+    parser.add_argument("--bop", type=Path, help="evaluate on a BOP scene folder instead of rendered frames (also a "
+                        "simulated sequence's folder: its frames with an image)")
     parser.add_argument("--obj-id", type=int, default=6, help="BOP object id in --bop's scene_gt.json")
     parser.add_argument("--no-zoom", action="store_true", help="vote on the whole-frame pass only (no crop pass)")
     parser.add_argument("--rotations", type=int, default=4, choices=(1, 4),
@@ -75,24 +77,31 @@ def rendered_frames(model_path: Path, n: int, seed: int, scenes: int, roll_deg: 
 
 
 def bop_frames(scene_dir: Path, obj_id: int):
-    """Yields (name, rgb, camera, T_CO, group) for the frames of a BOP scene that show obj_id."""
+    """Yields (name, rgb, camera, T_CO, group) for the frames of a BOP scene that have an image and show
+    obj_id, grouped by visible fraction where the scene has scene_gt_info.json. A simulated sequence's
+    folder (`flextrack simulate`, or the frames a table2 run sent) has images of the sent frames only
+    and no scene_gt_info.json: its frames form one group, "all"."""
     from datasets import bop
     from flextrack.geometry.camera import PinholeCamera
 
     poses = bop.read_scene_gt(scene_dir / "scene_gt.json", obj_id)
     Ks = bop.read_scene_camera(scene_dir / "scene_camera.json")
     gt = json.loads((scene_dir / "scene_gt.json").read_text())
-    info = json.loads((scene_dir / "scene_gt_info.json").read_text())
-    for frame in sorted(poses):
-        path = scene_dir / "rgb" / f"{frame:06d}.png"
+    info_path = scene_dir / "scene_gt_info.json"
+    info = json.loads(info_path.read_text()) if info_path.is_file() else None
+    for path in sorted((scene_dir / "rgb").glob("*.png")):
+        frame = int(path.stem)
+        if frame not in poses:
+            continue
         bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if bgr is None:
             raise FileNotFoundError(f"cannot read {path}")
-        k = next(i for i, a in enumerate(gt[str(frame)]) if int(a["obj_id"]) == obj_id)
-        visib = float(info[str(frame)][k]["visib_fract"])
+        group = "all"
+        if info is not None:
+            k = next(i for i, a in enumerate(gt[str(frame)]) if int(a["obj_id"]) == obj_id)
+            group = "visib>0.8" if float(info[str(frame)][k]["visib_fract"]) > 0.8 else "visib<=0.8"
         camera = PinholeCamera.from_K(Ks[frame], bgr.shape[1], bgr.shape[0])
-        yield f"{frame:06d}", cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), camera, poses[frame], \
-            ("visib>0.8" if visib > 0.8 else "visib<=0.8")
+        yield f"{frame:06d}", cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), camera, poses[frame], group
 
 
 # ---- evaluation -------------------------------------------------------------------------------
