@@ -160,8 +160,8 @@ def test_points_and_vectors_found_in_a_turned_crop_map_back():
 
 @pytest.mark.skipif(not SHIPPED.is_file(), reason=f"no shipped model at {SHIPPED}")
 def test_turned_crops_find_an_object_seen_upside_down(registry, rendered):
-    """The network was trained with modest camera roll only; a camera rolled 180 degrees (the circular
-    motion program rolls steadily) is found through the crop turned half way round."""
+    """The network is trained for objects within about 70 degrees of upright; a camera rolled 180 degrees
+    (the circular motion program rolls steadily) is found through the crop turned half way round."""
     rgb, T_gt = rendered[0]
     M = cv2.getRotationMatrix2D((CAMERA.cx, CAMERA.cy), 180.0, 1.0)
     upside_down = cv2.warpAffine(rgb, M, (CAMERA.width, CAMERA.height), borderMode=cv2.BORDER_REFLECT)

@@ -40,8 +40,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=20261122, help="seed of the rendered frames (never a training seed)")
     parser.add_argument("--scenes", type=int, default=4, help="rooms the rendered frames are spread over")
     parser.add_argument("--roll-deg", type=float, default=0.0,
-                        help="rendered frames: the camera turned this far about its optical axis (training saw at "
-                             "most about 40 deg of roll)")
+                        help="rendered frames: the camera turned this far about its optical axis (the same "
+                             "viewpoints whatever the roll)")
     parser.add_argument("--bop", type=Path, help="evaluate on a BOP scene folder instead of rendered frames (also a "
                         "simulated sequence's folder: its frames with an image)")
     parser.add_argument("--obj-id", type=int, default=6, help="BOP object id in --bop's scene_gt.json")
