@@ -145,12 +145,14 @@ def preset(name: str) -> TrackerOptions:
     kept in the body frame across corrections (`gravity_follow` 0.95), trusting the gyro over the
     backend's orientation, and no gyro-bias updates from BSCM (`gyro_bias_gain` 0: a rotation drift
     measured against such a backend is noise, and the bias it wrote walked the body-frame gravity
-    off; the still initialisation's estimate is kept). With an accurate backend and a gyro bias
-    left to estimate, that trust is misplaced. docs/tracker.md has the sweeps."""
+    off; the still initialisation's estimate is kept), but each pose taken whole (`pose_gain` 1:
+    the pvnet estimator's poses, refined on the object's outline, are within a pixel, and blending
+    them half way only kept half the drift since the last one). With an accurate backend and a gyro
+    bias left to estimate, that trust in the gyro is misplaced. docs/tracker.md has the sweeps."""
     if name == "paper":
         return TrackerOptions()
     if name == "ours":
         return TrackerOptions(pose_gain=0.5, gyro_bias_gain=0.005, accel_bias_gain=0.01, backend_gate_px=50.0)
     if name == "vision":
-        return replace(preset("ours"), gravity_follow=0.95, gyro_bias_gain=0.0)
+        return replace(preset("ours"), pose_gain=1.0, gravity_follow=0.95, gyro_bias_gain=0.0)
     raise ValueError(f"unknown tracker preset {name!r}: 'paper', 'ours' or 'vision'")

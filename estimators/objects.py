@@ -29,6 +29,7 @@ class ObjectModel:
     keypoints: np.ndarray  # (K, 3) m; keypoint id = row
     bbox_corners: np.ndarray  # (8, 3) m
     diameter_m: float
+    faces: np.ndarray  # (F, 3) rows of `vertices`: the mesh, for estimators that draw the object
 
 
 def farthest_point_sample(points: np.ndarray, k: int) -> np.ndarray:
@@ -75,7 +76,9 @@ def load_object(object_id: str, model_path: str | Path, keypoints=None,
         kp = np.asarray(keypoints, dtype=float)
     if kp.ndim != 2 or kp.shape[1] != 3 or not np.all(np.isfinite(kp)):
         raise ValueError(f"object '{object_id}': keypoints must be a finite (K, 3) array in metres, got {kp.shape}")
-    return ObjectModel(object_id, model_path, vertices, kp.astype(float), corners, _diameter_m(model_path, vertices))
+    faces = np.asarray(getattr(geometry, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
+    return ObjectModel(object_id, model_path, vertices, kp.astype(float), corners, _diameter_m(model_path, vertices),
+                       faces)
 
 
 class ObjectRegistry:

@@ -11,6 +11,7 @@ pytest.importorskip("onnxruntime")
 torch = pytest.importorskip("torch")
 
 from estimators.base import EstimateInput, InvalidInput, Status
+from estimators.contour_refine import ContourRefiner
 from estimators.objects import ObjectRegistry, load_object
 from estimators.pvnet import PvnetEstimator, _unturn
 from flextrack.geometry import metrics, se3, so3
@@ -96,7 +97,7 @@ def test_shipped_model_finds_the_default_object(registry, rendered):
         assert out.status == Status.OK, out.message
         assert metrics.proj_px(out.T_CO, T_gt, CAMERA, verts) < 5.0
         assert 0 < out.confidence <= 1
-        assert {"inference", "voting", "pnp"} <= set(out.stage_ms)
+        assert {"inference", "voting", "pnp", "refine"} <= set(out.stage_ms)
     single = est.estimate(_input(rendered[1][0], 1))  # batching does not change the answer (beyond rounding)
     assert metrics.proj_px(single.T_CO, outs[1].T_CO, CAMERA, verts) < 0.5
     # a pose less confident than min_confidence is no pose
@@ -172,3 +173,52 @@ def test_turned_crops_find_an_object_seen_upside_down(registry, rendered):
     assert outs[1].status != Status.OK or metrics.proj_px(outs[1].T_CO, T_rolled, CAMERA, verts) > 5.0
     with pytest.raises(ValueError, match="rotations"):
         PvnetEstimator(registry, SHIPPED, rotations=3)
+
+
+def test_contour_refinement_brings_a_pose_off_in_depth_and_rotation_back(registry, rendered):
+    """PnP on voted keypoints leaves a pose a few per cent off in depth; the object's outline in the
+    image pulls it back (to within a few mm, under a pixel), whichever way it was off."""
+    obj = registry.get("default")
+    refiner = ContourRefiner(obj.vertices, obj.faces, obj.keypoints)
+    for (rgb, T_gt), depth, turn in zip(rendered, (1.04, 0.96), (0.03, -0.03)):
+        T_off = T_gt.copy()
+        T_off[:3, :3] = so3.exp(np.array([turn, -turn, turn])) @ T_gt[:3, :3]
+        T_off[:3, 3] *= depth
+        T, info = refiner.refine(rgb, CAMERA.K, T_off)
+        assert not info["kept"] and info["points"] > 100 and info["fit"] > 0.8
+        assert metrics.add_m(T_off, T_gt, obj.vertices) > 0.025
+        assert metrics.add_m(T, T_gt, obj.vertices) < 0.006
+        assert metrics.proj_px(T, T_gt, CAMERA, obj.vertices) < 1.0
+
+
+def test_contour_refinement_keeps_the_pose_where_it_finds_no_outline(registry, rendered):
+    obj = registry.get("default")
+    refiner = ContourRefiner(obj.vertices, obj.faces, obj.keypoints)
+    _, T_gt = rendered[0]
+    blank = np.full((480, 640, 3), 90, np.uint8)  # no edges anywhere
+    T, info = refiner.refine(blank, CAMERA.K, T_gt)
+    assert info["kept"] and np.array_equal(T, T_gt)
+    behind = T_gt.copy()
+    behind[2, 3] = -behind[2, 3]
+    T, info = refiner.refine(rendered[0][0], CAMERA.K, behind)
+    assert info["kept"] and np.array_equal(T, behind)
+    with pytest.raises(ValueError, match="faces"):
+        ContourRefiner(obj.vertices, np.zeros((0, 3), int), obj.keypoints)
+
+
+def test_an_outline_far_from_the_object_does_not_fit(registry, rendered):
+    """A pose 30 px beside the object (a false blob's): most of its outline lies on no edge."""
+    obj = registry.get("default")
+    rgb, T_gt = rendered[0]
+    beside = T_gt.copy()
+    beside[0, 3] += 30.0 / CAMERA.fx * T_gt[2, 3]
+    _, info = ContourRefiner(obj.vertices, obj.faces, obj.keypoints).refine(rgb, CAMERA.K, beside)
+    assert info["fit"] < 0.5
+
+
+@pytest.mark.skipif(not SHIPPED.is_file(), reason=f"no shipped model at {SHIPPED}")
+def test_refinement_can_be_turned_off_and_its_outline_check_refuses(registry, rendered):
+    out = PvnetEstimator(registry, SHIPPED, refine=False).estimate(_input(rendered[0][0]))
+    assert out.status == Status.OK and "refine" not in out.stage_ms
+    strict = PvnetEstimator(registry, SHIPPED, min_outline_fit=1.01).estimate(_input(rendered[0][0]))
+    assert strict.status == Status.OBJECT_NOT_FOUND and "outline" in strict.message and "refine" in strict.stage_ms

@@ -48,6 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-zoom", action="store_true", help="vote on the whole-frame pass only (no crop pass)")
     parser.add_argument("--rotations", type=int, default=4, choices=(1, 4),
                         help="the estimator's crop turns (1: the crop only as it is)")
+    parser.add_argument("--no-refine", action="store_true", help="keep PnP's pose (no refinement on the image's edges)")
     parser.add_argument("--sheet", type=int, default=20, help="frames drawn in the contact sheet")
 
 
@@ -148,14 +149,14 @@ def summarise(rows: list[dict]) -> dict:
 
 
 def evaluate(model: Path, object_path: Path, frames, out: Path, zoom: bool = True, sheet: int = 20,
-             rotations: int = 4) -> dict:
+             rotations: int = 4, refine: bool = True) -> dict:
     from estimators.base import EstimateInput, Status
     from estimators.objects import ObjectRegistry, load_object
     from estimators.pvnet import PvnetEstimator
     from flextrack.geometry import metrics
 
     obj = load_object("object", object_path)
-    estimator = PvnetEstimator(ObjectRegistry([obj]), model, zoom=zoom, rotations=rotations)
+    estimator = PvnetEstimator(ObjectRegistry([obj]), model, zoom=zoom, rotations=rotations, refine=refine)
     rows, drawings = [], []
     out.mkdir(parents=True, exist_ok=True)
     for i, (name, rgb, camera, T_gt, group) in enumerate(frames):
@@ -173,7 +174,7 @@ def evaluate(model: Path, object_path: Path, frames, out: Path, zoom: bool = Tru
                                       f"{name} {group} proj {proj:.1f}px"))
     summary = summarise(rows)
     (out / "results.json").write_text(json.dumps({"model": str(model), "object": str(object_path), "zoom": zoom,
-                                                  "rotations": rotations, "summary": summary, "frames": rows}, indent=1))
+                                                  "rotations": rotations, "refine": refine, "summary": summary, "frames": rows}, indent=1))
     if drawings:
         cv2.imwrite(str(out / "poses.jpg"), contact_sheet(drawings), [cv2.IMWRITE_JPEG_QUALITY, 85])
     return summary
@@ -193,7 +194,7 @@ def run(args) -> int:
         else:
             frames = rendered_frames(object_path, args.frames, args.seed, args.scenes, args.roll_deg)
         summary = evaluate(args.model, object_path, frames, args.out, zoom=not args.no_zoom, sheet=args.sheet,
-                           rotations=args.rotations)
+                           rotations=args.rotations, refine=not args.no_refine)
     except (FileNotFoundError, ValueError) as exc:
         print(f"evaluate: {exc}", file=sys.stderr)
         return 2

@@ -15,6 +15,15 @@ def skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
+def skew_batch(v: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) matrices [v_i]x of (N, 3) vectors."""
+    v = np.asarray(v, dtype=float)
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return out
+
+
 def exp(phi: np.ndarray) -> np.ndarray:
     """Rotation matrix of the rotation vector phi (Rodrigues' formula, the paper's Eq. 2)."""
     phi = np.asarray(phi, dtype=float)
