@@ -2,7 +2,7 @@
 
 Frames of the default object in the simulator's room are JPEG-encoded as a client sends them;
 each is decoded as the service decodes it, then estimated. Prints the mean decode, inference,
-voting and PnP time per frame at batch 1, and frames/s (decode included) per batch size.
+voting, PnP and refinement time per frame at batch 1, and frames/s (decode included) per batch size.
 """
 
 from __future__ import annotations
@@ -62,12 +62,12 @@ def run(args) -> int:
         return EstimateInput(frame_id=i, capture_time_ns=0, camera=camera, image=rgb), (time.perf_counter() - t) * 1e3
 
     estimator.estimate(decode(0)[0])  # warm-up
-    stages = {"decode": [], "inference": [], "voting": [], "pnp": []}
+    stages = {"decode": [], "inference": [], "voting": [], "pnp": [], "refine": []}
     for i in range(len(images)):
         inp, ms = decode(i)
         out = estimator.estimate(inp)
         stages["decode"].append(ms)
-        for key in ("inference", "voting", "pnp"):
+        for key in ("inference", "voting", "pnp", "refine"):
             stages[key].append(out.stage_ms.get(key, 0.0))
     total = sum(np.mean(v) for v in stages.values())
     print("batch 1, mean ms per frame: " + ", ".join(f"{k} {np.mean(v):.2f}" for k, v in stages.items())
