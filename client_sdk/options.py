@@ -147,12 +147,17 @@ def preset(name: str) -> TrackerOptions:
     measured against such a backend is noise, and the bias it wrote walked the body-frame gravity
     off; the still initialisation's estimate is kept), but each pose taken whole (`pose_gain` 1:
     the pvnet estimator's poses, refined on the object's outline, are within a pixel, and blending
-    them half way only kept half the drift since the last one). With an accurate backend and a gyro
-    bias left to estimate, that trust in the gyro is misplaced. docs/tracker.md has the sweeps."""
+    them half way only kept half the drift since the last one), and velocity and accelerometer bias
+    corrected at once (`velocity_gain` 1, `accel_bias_gain` 0.2): such a backend answers ~5 times a
+    second, not ~20, so the IMU carries each pose 0.2-0.4 s, where a velocity error left to decay
+    over ten answers costs tens of pixels; the poses are accurate across the image (their error is
+    in depth), so one answer's V_avg is good enough to take whole. With an accurate backend and a
+    gyro bias left to estimate, that trust in the gyro is misplaced. docs/tracker.md has the sweeps."""
     if name == "paper":
         return TrackerOptions()
     if name == "ours":
         return TrackerOptions(pose_gain=0.5, gyro_bias_gain=0.005, accel_bias_gain=0.01, backend_gate_px=50.0)
     if name == "vision":
-        return replace(preset("ours"), pose_gain=1.0, gravity_follow=0.95, gyro_bias_gain=0.0)
+        return replace(preset("ours"), pose_gain=1.0, gravity_follow=0.95, gyro_bias_gain=0.0, velocity_gain=1.0,
+                       accel_bias_gain=0.2)
     raise ValueError(f"unknown tracker preset {name!r}: 'paper', 'ours' or 'vision'")

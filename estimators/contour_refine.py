@@ -7,8 +7,11 @@ outline in the image is sharp to a fraction of a pixel, and its size fixes the d
 draws the silhouette (the mesh's triangles, four times oversampled), takes points along its
 contour with their outward normals, finds the edge along each normal (the largest change of colour
 within `search_px`, favouring the nearest), and solves the 6 pose parameters by robust least
-squares (scipy, Huber loss) on the points' distances to their edges along the normals, with the
-starting pose's projected keypoints as a prior so that a few false edges cannot drag it far.
+squares (scipy, Cauchy loss) on the points' distances to their edges along the normals, with the
+starting pose's projected keypoints as a prior so that a few false edges cannot drag it far. In the
+last round, once the pose is near, the points left more than `fit_px` off their edge are dropped
+and the pose solved again: the false edges are mostly the object's own print just inside its
+outline, so they lean one way, and even down-weighted they pulled the pose too far (docs/pvnet.md).
 """
 
 from __future__ import annotations
@@ -39,6 +42,7 @@ class ContourRefineConfig:
     min_points: int = 30  # fewer points with an edge: the pose is kept as it is
     max_shift_px: float = 8.0  # a refined pose whose keypoints moved further is rejected
     fit_px: float = 1.0  # a contour point this near its edge after the fit counts as fitting
+    trim: bool = True  # the last round solved again without the points over fit_px off their edge
 
 
 def _project(K: np.ndarray, R: np.ndarray, t: np.ndarray, points_O: np.ndarray) -> np.ndarray:
@@ -140,10 +144,10 @@ class ContourRefiner:
         return offset, found
 
     def _fit(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, points_O: np.ndarray, normals: np.ndarray,
-             targets: np.ndarray, prior: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+             targets: np.ndarray, prior: np.ndarray, trim: bool) -> tuple[np.ndarray, np.ndarray]:
         """The pose (R, t) moved so that the contour points land on their edges along their normals,
         the keypoints held near their prior projections. Residual rows: one per contour point, then
-        x and y per keypoint."""
+        x and y per keypoint. `trim`: solved again without the points left over `fit_px` off."""
         w = np.sqrt(self.config.prior_weight)
         points = np.vstack([points_O, self.keypoints])
         m = len(points_O)
@@ -163,9 +167,16 @@ class ContourRefiner:
             J = np.concatenate([d_rot, d_uv], axis=2)  # (N, 2, 6)
             return np.vstack([np.einsum("ni,nij->nj", normals, J[:m]), w * J[m:].reshape(-1, 6)])
 
-        fit = least_squares(residuals, np.zeros(6), jac=jacobian, loss="cauchy", f_scale=self.config.robust_px,
-                            x_scale="jac")
-        return so3.exp(fit.x[:3]) @ R, t + fit.x[3:]
+        def solve(rows: np.ndarray) -> np.ndarray:
+            keep = np.concatenate([rows, np.ones(2 * len(self.keypoints), bool)])
+            return least_squares(lambda x: residuals(x)[keep], np.zeros(6), jac=lambda x: jacobian(x)[keep],
+                                 loss="cauchy", f_scale=self.config.robust_px, x_scale="jac").x
+
+        x = solve(np.ones(m, bool))
+        near = np.abs(residuals(x)[:m]) < self.config.fit_px  # trimmed: the one-sided false edges out
+        if trim and near.sum() >= self.config.min_points:
+            x = solve(near)
+        return so3.exp(x[:3]) @ R, t + x[3:]
 
     def refine(self, image: np.ndarray, K: np.ndarray, T_CO: np.ndarray) -> tuple[np.ndarray, dict]:
         """The refined pose and what happened ({"points": edges used, "shift_px": keypoint motion,
@@ -175,7 +186,7 @@ class ContourRefiner:
         R, t = T_CO[:3, :3].copy(), T_CO[:3, 3].copy()
         prior = _project(K, R, t, self.keypoints)
         used, fit = 0, 0.0
-        for _ in range(cfg.rounds):
+        for round_ in range(cfg.rounds):
             contour = self._contour(K, R, t, image.shape[:2])
             if contour is None:
                 break
@@ -185,9 +196,11 @@ class ContourRefiner:
             if used < cfg.min_points:
                 break
             targets = pts[found] + offset[found, None] * normals[found]
-            R, t = self._fit(K, R, t, points_O[found], normals[found], targets, prior)
+            R, t = self._fit(K, R, t, points_O[found], normals[found], targets, prior, trim=cfg.trim and round_ == cfg.rounds - 1)
             along = np.sum((_project(K, R, t, points_O[found]) - targets) * normals[found], axis=1)
-            fit = float(np.sum(np.abs(along) < cfg.fit_px)) / len(pts)
+            # share of the outline in view that lies on an edge (out of view, no edge can be checked)
+            in_view = np.all((pts >= 1) & (pts <= np.array(image.shape[1::-1]) - 2), axis=1)
+            fit = min(1.0, float(np.sum(np.abs(along) < cfg.fit_px)) / max(int(in_view.sum()), 1))
         shift = float(np.mean(np.linalg.norm(_project(K, R, t, self.keypoints) - prior, axis=1)))
         kept = used < cfg.min_points or shift > cfg.max_shift_px
         T = T_CO.copy()

@@ -30,9 +30,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "circular medium at 30 and 120 FPS)")
     parser.add_argument("--config", type=Path, help="table2 --backend: the service config (default "
                         "service/default_config.toml)")
-    parser.add_argument("--backend-ms", type=float, default=115.0,
+    parser.add_argument("--backend-ms", type=float, default=145.0,
                         help="table2 --backend: modelled compute time of the estimator per frame, ms (virtual time; "
-                        "115 = pvnet with its turned crops on this project's 2-core CPU, `flextrack bench pvnet`)")
+                        "145 = pvnet with its turned crops and outline refinement on this project's 2-core CPU, "
+                        "`flextrack bench pvnet`, with some margin)")
     parser.add_argument("--data", type=Path, help="euroc: the EuRoC folder (default ../shared/data/euroc_v1_02_medium)")
 
 

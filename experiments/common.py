@@ -31,7 +31,8 @@ TRACKER_VARIANTS = {"paper": PAPER_FAITHFUL, "ours": OURS}
 VARIANT_TITLES = {
     "ours": "ours (pose_gain 0.5, gyro_bias_gain 0.005, accel_bias_gain 0.01, backend_gate_px 50)",
     "paper": "paper-faithful (each backend pose resets the state; BSCM with the damped default gains)",
-    "vision": "vision (ours + pose_gain 1, gravity_follow 0.95, gyro_bias_gain 0: the gyro trusted over a learned backend's orientation)",
+    "vision": "vision (ours + pose_gain 1, gravity_follow 0.95, gyro_bias_gain 0, velocity_gain 1, accel_bias_gain 0.2: "
+              "the gyro trusted over a learned backend's orientation, each slow answer's velocity taken whole)",
 }
 
 
