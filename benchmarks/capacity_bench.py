@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -21,7 +22,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from loadtest import ramp, report, runner, servers, workload
+from loadtest import front_proxy, ramp, report, runner, servers, workload
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -52,6 +53,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--server-cpus", help="pin each server process to these CPUs, e.g. 1 (default: no pinning)")
     parser.add_argument("--client-cpus", help="pin the load generator to these CPUs, e.g. 0: on a small machine "
                         "a load generator sharing the server's cores takes CPU from it, and its own timings suffer")
+    parser.add_argument("--front", choices=("none", "nginx"), default="none",
+                        help="nginx: every server behind an nginx (loadtest/front_proxy.py) that counts open Track "
+                        "streams and refuses the excess itself, before the Python process; the server keeps a "
+                        "looser --max-streams as a backstop")
+    parser.add_argument("--front-cpus", help="pin the front proxy to these CPUs (default: --server-cpus)")
+    parser.add_argument("--front-nice", type=int, default=0,
+                        help="the front proxy's nice value; below 0 (root only) it runs ahead of a server on its CPU")
+    parser.add_argument("--probe-nice", type=int, default=0,
+                        help="the lone probe device's nice value; below 0 (root only) it runs ahead of the load "
+                        "generator it shares a CPU with, as a phone has its own")
     parser.add_argument("--out", type=Path, default=Path("out/bench_capacity"))
 
 
@@ -82,11 +93,13 @@ def _ramp(name: str, spec: runner.LoadSpec, work: workload.Workload, args, out: 
 
 
 def _overload(name: str, spec: runner.LoadSpec, work: workload.Workload, clients: int, server, out: Path,
-              probe_cpus: set[int] | None = None) -> dict:
+              probe_cpus: set[int] | None = None, probe_nice: int = 0) -> dict:
     # A lone probe process times refusals as one device sees them, apart from the load generator's loop.
-    probe = subprocess.Popen([sys.executable, "-m", "benchmarks.refusal_probe", server.address,
+    probe = subprocess.Popen([sys.executable, "-m", "benchmarks.refusal_probe", spec.targets[0],
                               str(spec.warmup_s + spec.duration_s)], cwd=servers.REPO, stdout=subprocess.PIPE, text=True)
     servers.pin(probe.pid, probe_cpus)
+    if probe_nice:
+        os.setpriority(os.PRIO_PROCESS, probe.pid, probe_nice)
     result = runner.run(replace(spec, clients=clients), work)
     probed = json.loads(probe.communicate(timeout=30)[0] or "{}")
     probe_ms = report.percentiles(probed.get("refused_ms", []))
@@ -109,13 +122,19 @@ def _overload(name: str, spec: runner.LoadSpec, work: workload.Workload, clients
             "outcomes": summary["outcomes"]}
 
 
-def _ramps(names: list[str], works: dict, serve_args: list[str], base: runner.LoadSpec, server_cpus, args,
-           out: Path) -> dict:
+def _ramps(names: list[str], works: dict, serve_args: list[str], base: runner.LoadSpec, server_cpus, front_cpus,
+           args, out: Path) -> dict:
     """Each backend's capacity: the echo servicer's and each estimator's, the median over `args.repeats` rounds."""
     running = {"echo": servers.start_echo(cpus=server_cpus)}
+    fronts = []
     try:
         for n in names:
             running[n] = servers.start_serve(serve_args, n, log_path=out / f"{n}_server.log", cpus=server_cpus)
+        if args.front == "nginx":  # the same path as the overload run's, without a bound
+            for n, server in running.items():
+                fronts.append(front_proxy.start_nginx(server.address, None, out / f"nginx_{n}", front_cpus,
+                                                      args.front_nice))
+                running[n] = servers.ServerProcess(n, fronts[-1].address, server.process)
         # Rounds alternate the order of the backends, so that load from elsewhere on the machine falls
         # on all of them alike; each backend's figure is the median over the rounds.
         rounds: dict[str, list[dict]] = {n: [] for n in running}
@@ -124,6 +143,8 @@ def _ramps(names: list[str], works: dict, serve_args: list[str], base: runner.Lo
                 spec = replace(base, targets=(running[n].address,))
                 rounds[n].append(_ramp(n, spec, works[n], args, out / f"round{r}"))
     finally:
+        for proxy in fronts:
+            proxy.stop()
         exit_codes = {n: server.stop() for n, server in running.items()}
     backends = {}
     for n, entries in rounds.items():
@@ -137,14 +158,17 @@ def run(args: argparse.Namespace) -> int:
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     results: dict = {"date_utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "fps": args.fps,
-                     "payload_kb": args.payload_kb, "p99_bound_ms": args.p99_bound_ms, "backends": {}}
+                     "payload_kb": args.payload_kb, "p99_bound_ms": args.p99_bound_ms, "front": args.front,
+                     "backends": {}}
     try:
         server_cpus, client_cpus = servers.parse_cpus(args.server_cpus), servers.parse_cpus(args.client_cpus)
+        front_cpus = servers.parse_cpus(args.front_cpus) if args.front_cpus else server_cpus
     except ValueError as exc:
         print(f"flextrack bench capacity: {exc}")
         return 2
     servers.pin(0, client_cpus)
     results["server_cpus"], results["client_cpus"] = args.server_cpus, args.client_cpus
+    results["front_cpus"] = args.front_cpus or args.server_cpus
     with tempfile.TemporaryDirectory() as tmp:
         config, sequence = (args.config, args.sequence) if args.config else _toy_config(Path(tmp))
         if sequence is None:
@@ -159,22 +183,33 @@ def run(args: argparse.Namespace) -> int:
         if args.capacity:
             results["backends"] = {n: {"capacity_clients": args.capacity, "given": True} for n in names}
         else:
-            results["backends"] = _ramps(names, works, serve_args, base, server_cpus, args, out)
+            results["backends"] = _ramps(names, works, serve_args, base, server_cpus, front_cpus, args, out)
         for n in ([] if args.no_overload else names):
             # The operator's setting from this figure: under `capacity` devices per replica, so that
             # the event loop keeps the headroom to refuse the rest at once.
             capacity = max(1, results["backends"][n]["capacity_clients"])
             max_streams = max(1, int(args.stream_headroom * capacity))
-            server = servers.start_serve([*serve_args, "--max-streams", str(max_streams)], n,
+            # behind nginx, the server's own bound is a looser backstop: a stream nginx has just closed
+            # may still be open on the server for a moment
+            server_bound = max_streams + max(2, max_streams // 4) if args.front == "nginx" else max_streams
+            server = servers.start_serve([*serve_args, "--max-streams", str(server_bound)], n,
                                          log_path=out / f"{n}_server.log", cpus=server_cpus)
+            proxy = None
+            overload = {}
             try:
+                if args.front == "nginx":
+                    proxy = front_proxy.start_nginx(server.address, max_streams, out / f"nginx_{n}", front_cpus,
+                                                    args.front_nice)
+                gate = proxy or server
                 # one connection per device, as phones have: on a shared connection a refusal waits behind
                 # the other devices' frames
-                spec = replace(base, targets=(server.address,), await_admission=True, channels=0)
-                overload = _overload(n, spec, works[n], 2 * capacity, server, out, client_cpus)
+                spec = replace(base, targets=(gate.address,), await_admission=True, channels=0)
+                overload = _overload(n, spec, works[n], 2 * capacity, server, out, client_cpus, args.probe_nice)
             finally:
+                if proxy is not None:
+                    proxy.stop()
                 overload["exit_code"] = server.stop()
-            results["backends"][n]["overload"] = dict(overload, max_streams=max_streams)
+            results["backends"][n]["overload"] = dict(overload, max_streams=max_streams, front=args.front)
     if not args.capacity:
         _print_against_echo(results["backends"], args.p99_bound_ms)
     (out / "capacity.json").write_text(json.dumps(results, indent=2))

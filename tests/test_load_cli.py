@@ -11,7 +11,7 @@ from benchmarks.toy_sequence import write_orbit_sequence
 from estimators.gt_oracle import GtOracleEstimator
 from estimators.registry import EstimatorRegistry
 from flextrack.cli import main
-from loadtest import runner, workload
+from loadtest import front_proxy, runner, workload
 from service.hardening import Hardening
 from service.server import BackgroundServer
 
@@ -70,13 +70,19 @@ def test_bad_targets_and_options_are_refused_clearly(tmp_path, capsys):
     assert runner.grpc_target(["127.0.0.1:5", "127.0.0.1:6"]) == "ipv4:127.0.0.1:5,127.0.0.1:6"
 
 
-def test_bench_capacity_overload_run_at_a_given_capacity(tmp_path, capsys):
+@pytest.mark.parametrize("front", ["none", "nginx"])
+def test_bench_capacity_overload_run_at_a_given_capacity(front, tmp_path, capsys):
     """The overload half of `flextrack bench capacity` on a real `flextrack serve` process: twice the given
-    capacity, the excess refused with RESOURCE_EXHAUSTED (and a lone probe's refusals timed), the server up."""
-    rc = main(["bench", "capacity", "--capacity", "4", "--step-s", "1.5", "--payload-kb", "10", "--out", str(tmp_path)])
+    capacity, the excess refused with RESOURCE_EXHAUSTED (and a lone probe's refusals timed), the server up;
+    by the server itself or by an nginx gate in front of it."""
+    if front == "nginx" and front_proxy.nginx_binary() is None:
+        pytest.skip("nginx is not installed (Debian: apt-get install nginx-light)")
+    rc = main(["bench", "capacity", "--capacity", "4", "--step-s", "1.5", "--payload-kb", "10", "--front", front,
+               "--out", str(tmp_path)])
     assert rc == 0
     overload = json.loads((tmp_path / "capacity.json").read_text())["backends"]["gt_oracle"]["overload"]
     assert overload["clients"] == 8 and overload["max_streams"] == 2 and overload["server_up_after"]
+    assert overload["front"] == front and overload["exit_code"] == 0
     assert overload["outcomes"]["OK"] > 0 and overload["outcomes"]["grpc:RESOURCE_EXHAUSTED"] > 0
     assert overload["probe_refused_ms"]["p50_ms"] > 0  # the probe (every 0.1 s, ignoring pushback) was refused
     assert "capacity given: no ramps" in capsys.readouterr().out
