@@ -36,7 +36,7 @@ _END = object()
 @dataclass(frozen=True)
 class TransportOptions:
     request_timeout_s: float = 1.0  # no response by then: report a failure and reconnect
-    connect_timeout_s: float = 0.5  # wait this long for the channel to become ready per attempt
+    connect_timeout_s: float = 0.5  # report "not reachable" after this long without a ready channel (it keeps trying)
     backoff_initial_s: float = 0.05
     backoff_max_s: float = 0.5
     backoff_multiplier: float = 2.0
@@ -114,6 +114,7 @@ class TrackClient:
         self._threads: list[threading.Thread] = []
         self.reconnects = 0
         self._pushback_s = 0.0  # what the server asked of the last stream's retry
+        self._last_ready_watch = float("-inf")  # monotonic time of the last channel_ready_future
 
     # -- the caller's side ---------------------------------------------------------------------
     def start(self) -> TrackClient:
@@ -163,46 +164,61 @@ class TrackClient:
 
     # -- the background side -------------------------------------------------------------------
     def _run(self) -> None:
-        while not self._stop.is_set():
-            reason = self._one_stream()
-            self._fail_in_flight(reason)
-            if self._stop.is_set():
-                break
-            self.reconnects += 1
-            pushback, self._pushback_s = min(self._pushback_s, self.options.pushback_max_s), 0.0
-            self._stop.wait(max(self._backoff.next_s(), pushback))
-
-    def _one_stream(self) -> str:
-        """Open a channel and a stream, pump responses until it breaks; returns why it ended."""
-        channel = (grpc.secure_channel(self.target, self._credentials) if self._credentials is not None
-                   else grpc.insecure_channel(self.target))
+        # One channel for the client's life: while the server is away, gRPC's own connection backoff
+        # (capped at backoff_max_s) keeps trying, so a returning server is seen within that cap.
+        # A channel per attempt, closed after connect_timeout_s and followed by a backoff wait, left
+        # windows of up to ~1 s with no attempt at all (a recovery test failed at 1.01 s on that).
+        o = self.options
+        channel_options = [("grpc.initial_reconnect_backoff_ms", max(1, round(o.backoff_initial_s * 1e3))),
+                           ("grpc.max_reconnect_backoff_ms", max(1, round(o.backoff_max_s * 1e3)))]
+        channel = (grpc.secure_channel(self.target, self._credentials, options=channel_options)
+                   if self._credentials is not None else grpc.insecure_channel(self.target, options=channel_options))
         try:
-            try:
-                grpc.channel_ready_future(channel).result(timeout=self.options.connect_timeout_s)
-            except grpc.FutureTimeoutError:
-                return f"backend {self.target} not reachable"
-            outbox: queue.Queue = queue.Queue()
-            stub = pb_grpc.PoseEstimationStub(grpc.intercept_channel(channel, *self._interceptors))
-            call = stub.Track(iter(outbox.get, _END), metadata=self._metadata or None)
-            with self._lock:
-                self._outbox, self._call = outbox, call
-            self._backoff.reset()
-            try:
-                for response in call:
-                    with self._lock:
-                        self._in_flight.pop(response.frame_id, None)
-                    self._deliver(self._on_response, response)
-                return "stream ended by the server"
-            except grpc.RpcError as exc:
-                self._pushback_s = retry_pushback_s(exc.trailing_metadata())
-                return f"stream broke: {exc.code().name} {exc.details() or ''}".strip()
-            finally:
-                with self._lock:
-                    self._outbox, self._call = None, None
-                outbox.put(_END)
-                call.cancel()
+            while not self._stop.is_set():
+                reason, streamed = self._one_stream(channel)
+                self._fail_in_flight(reason)
+                if self._stop.is_set():
+                    break
+                self.reconnects += 1
+                if streamed:  # a stream that broke or was refused: wait before the next one
+                    pushback, self._pushback_s = min(self._pushback_s, o.pushback_max_s), 0.0
+                    self._stop.wait(max(self._backoff.next_s(), pushback))
         finally:
+            # gRPC's connectivity watch, started by channel_ready_future, polls every 0.2 s and fails on a
+            # channel closed under it: let a recent one see its last poll first
+            time.sleep(max(0.0, self._last_ready_watch + 0.25 - time.monotonic()))
             channel.close()
+
+    def _one_stream(self, channel: grpc.Channel) -> tuple[str, bool]:
+        """Wait for the channel, open a stream, pump responses until it breaks; returns why it ended,
+        and whether a stream was opened (False: the channel was not ready within connect_timeout_s)."""
+        ready = grpc.channel_ready_future(channel)
+        self._last_ready_watch = time.monotonic()
+        try:
+            ready.result(timeout=self.options.connect_timeout_s)
+        except grpc.FutureTimeoutError:
+            ready.cancel()  # stops its connectivity watch, which would outlive the channel otherwise
+            return f"backend {self.target} not reachable", False
+        outbox: queue.Queue = queue.Queue()
+        stub = pb_grpc.PoseEstimationStub(grpc.intercept_channel(channel, *self._interceptors))
+        call = stub.Track(iter(outbox.get, _END), metadata=self._metadata or None)
+        with self._lock:
+            self._outbox, self._call = outbox, call
+        self._backoff.reset()
+        try:
+            for response in call:
+                with self._lock:
+                    self._in_flight.pop(response.frame_id, None)
+                self._deliver(self._on_response, response)
+            return "stream ended by the server", True
+        except grpc.RpcError as exc:
+            self._pushback_s = retry_pushback_s(exc.trailing_metadata())
+            return f"stream broke: {exc.code().name} {exc.details() or ''}".strip(), True
+        finally:
+            with self._lock:
+                self._outbox, self._call = None, None
+            outbox.put(_END)
+            call.cancel()
 
     def _watchdog(self) -> None:
         """Cancel the stream when the oldest request outlives its deadline (the reader reconnects)."""
