@@ -27,17 +27,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _frames(n: int):
-    import cv2
-
     from flextrack.geometry.camera import PinholeCamera
     from flextrack.v1 import pose_estimation_pb2 as pb
+    from runners.payload import frame_jpeg
     from training.cli import DEFAULT_OBJECT
     from training.evaluate import rendered_frames
 
     out = []
     for _, rgb, camera, _, _ in rendered_frames(DEFAULT_OBJECT, n, seed=7, scenes=1):
-        _, jpeg = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 90])
-        out.append(pb.Image(encoding=pb.Image.JPEG, data=jpeg.tobytes(), width=rgb.shape[1], height=rgb.shape[0]))
+        out.append(pb.Image(encoding=pb.Image.JPEG, data=frame_jpeg(rgb, 90), width=rgb.shape[1], height=rgb.shape[0]))
     return out, PinholeCamera.linemod()
 
 

@@ -49,3 +49,24 @@ def test_a_simulated_sequence_folder_is_scored_on_its_frames_with_an_image(tmp_p
     frames = list(bop_frames(tmp_path, obj_id=1))
     assert [name for name, *_ in frames] == ["000000", "000002"] and {f[4] for f in frames} == {"all"}
     assert np.allclose(frames[1][3], poses[2]) and frames[1][2].width == 64
+
+
+def test_frames_as_sent_keep_their_colour_resolution():
+    """The device sends JPEG with full-resolution colour (4:4:4): JPEG's usual 4:2:0 blurs colour edges,
+    which the pvnet refinement fits to. `--jpeg` scores frames through the same encoding."""
+    import io
+
+    from PIL import Image, JpegImagePlugin
+
+    from runners.payload import frame_jpeg
+    from training.evaluate import as_sent
+
+    stripes = np.zeros((48, 64, 3), np.uint8)
+    stripes[:, ::2] = (200, 40, 40)  # 1 px columns of red and black: all colour detail
+    for chroma, sampling in (("444", 0), ("420", 2)):
+        assert JpegImagePlugin.get_sampling(Image.open(io.BytesIO(frame_jpeg(stripes, 90, chroma)))) == sampling
+    (_, sent_444, *_), = as_sent([("f", stripes, None, np.eye(4), "g")], 90, "444")
+    (_, sent_420, *_), = as_sent([("f", stripes, None, np.eye(4), "g")], 90, "420")
+    assert sent_444.shape == stripes.shape
+    error = {name: np.abs(img.astype(int) - stripes).mean() for name, img in (("444", sent_444), ("420", sent_420))}
+    assert error["444"] < 0.5 * error["420"], error

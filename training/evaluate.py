@@ -50,6 +50,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the estimator's crop turns (1: the crop only as it is)")
     parser.add_argument("--no-refine", action="store_true", help="keep PnP's pose (no refinement on the image's edges)")
     parser.add_argument("--sheet", type=int, default=20, help="frames drawn in the contact sheet")
+    parser.add_argument("--jpeg", type=int, metavar="QUALITY",
+                        help="send each frame through JPEG at this quality first, as the device does (default: "
+                        "the frames as rendered or read)")
+    parser.add_argument("--jpeg-chroma", choices=("444", "420"), default="444",
+                        help="with --jpeg: full-resolution colour (the device's) or JPEG's usual halved colour")
 
 
 # ---- frames -----------------------------------------------------------------------------------
@@ -75,6 +80,15 @@ def rendered_frames(model_path: Path, n: int, seed: int, scenes: int, roll_deg: 
             for i in range(s * per_scene, min(n, (s + 1) * per_scene)):
                 T_CO = roll @ se3.inverse(look_at_pose(rng, camera, centre_W)) @ T_WO
                 yield f"{i:04d}", renderer.render(T_CO).rgb, camera, T_CO, "rendered"
+
+
+def as_sent(frames, quality: int, chroma: str):
+    """The frames JPEG-encoded as the device sends them and decoded as the service does."""
+    from runners.payload import frame_jpeg
+
+    for name, rgb, camera, T_CO, group in frames:
+        bgr = cv2.imdecode(np.frombuffer(frame_jpeg(rgb, quality, chroma), np.uint8), cv2.IMREAD_COLOR)
+        yield name, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), camera, T_CO, group
 
 
 def bop_frames(scene_dir: Path, obj_id: int):
@@ -193,6 +207,8 @@ def run(args) -> int:
             frames = bop_frames(args.bop, args.obj_id)
         else:
             frames = rendered_frames(object_path, args.frames, args.seed, args.scenes, args.roll_deg)
+        if args.jpeg is not None:
+            frames = as_sent(frames, args.jpeg, args.jpeg_chroma)
         summary = evaluate(args.model, object_path, frames, args.out, zoom=not args.no_zoom, sheet=args.sheet,
                            rotations=args.rotations, refine=not args.no_refine)
     except (FileNotFoundError, ValueError) as exc:
