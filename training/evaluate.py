@@ -51,8 +51,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-refine", action="store_true", help="keep PnP's pose (no refinement on the image's edges)")
     parser.add_argument("--sheet", type=int, default=20, help="frames drawn in the contact sheet")
     parser.add_argument("--jpeg", type=int, metavar="QUALITY",
-                        help="send each frame through JPEG at this quality first, as the device does (default: "
-                        "the frames as rendered or read)")
+                        help="send each frame through JPEG at this quality first, as the device does; without it "
+                        "the frames are scored as rendered or read")
     parser.add_argument("--jpeg-chroma", choices=("444", "420"), default="444",
                         help="with --jpeg: full-resolution colour (the device's) or JPEG's usual halved colour")
 
@@ -163,7 +163,9 @@ def summarise(rows: list[dict]) -> dict:
 
 
 def evaluate(model: Path, object_path: Path, frames, out: Path, zoom: bool = True, sheet: int = 20,
-             rotations: int = 4, refine: bool = True) -> dict:
+             rotations: int = 4, refine: bool = True, jpeg: str | None = None) -> dict:
+    """Scores `frames` with the pvnet estimator; writes results.json and the pose pictures. `jpeg`: how
+    the frames were encoded first (e.g. "90/444"), recorded with the results."""
     from estimators.base import EstimateInput, Status
     from estimators.objects import ObjectRegistry, load_object
     from estimators.pvnet import PvnetEstimator
@@ -188,7 +190,8 @@ def evaluate(model: Path, object_path: Path, frames, out: Path, zoom: bool = Tru
                                       f"{name} {group} proj {proj:.1f}px"))
     summary = summarise(rows)
     (out / "results.json").write_text(json.dumps({"model": str(model), "object": str(object_path), "zoom": zoom,
-                                                  "rotations": rotations, "refine": refine, "summary": summary, "frames": rows}, indent=1))
+                                                  "rotations": rotations, "refine": refine, "jpeg": jpeg, "summary": summary,
+                                                  "frames": rows}, indent=1))
     if drawings:
         cv2.imwrite(str(out / "poses.jpg"), contact_sheet(drawings), [cv2.IMWRITE_JPEG_QUALITY, 85])
     return summary
@@ -210,7 +213,8 @@ def run(args) -> int:
         if args.jpeg is not None:
             frames = as_sent(frames, args.jpeg, args.jpeg_chroma)
         summary = evaluate(args.model, object_path, frames, args.out, zoom=not args.no_zoom, sheet=args.sheet,
-                           rotations=args.rotations, refine=not args.no_refine)
+                           rotations=args.rotations, refine=not args.no_refine,
+                           jpeg=None if args.jpeg is None else f"{args.jpeg}/{args.jpeg_chroma}")
     except (FileNotFoundError, ValueError) as exc:
         print(f"evaluate: {exc}", file=sys.stderr)
         return 2
