@@ -38,7 +38,7 @@ class ContourRefineConfig:
     min_edge: float = 6.0  # colour change (0-255 per px) below which a point finds no edge
     robust_px: float = 0.3  # scale of the Cauchy loss: an edge further off is most likely another edge
     step_px: int = 1  # width each side of the step an edge is measured as (no blur: it moved edges inwards)
-    prior_weight: float = 0.5  # per keypoint, against the starting pose's projection
+    prior_weight: float = 0.02  # per keypoint, against the starting pose's projection: weak, the outline decides
     min_points: int = 30  # fewer points with an edge: the pose is kept as it is
     max_shift_px: float = 8.0  # a refined pose whose keypoints moved further is rejected
     fit_px: float = 1.0  # a contour point this near its edge after the fit counts as fitting

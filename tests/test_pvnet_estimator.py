@@ -177,17 +177,20 @@ def test_turned_crops_find_an_object_seen_upside_down(registry, rendered):
 
 def test_contour_refinement_brings_a_pose_off_in_depth_and_rotation_back(registry, rendered):
     """PnP on voted keypoints leaves a pose a few per cent off in depth; the object's outline in the
-    image pulls it back (to within a few mm, under a pixel), whichever way it was off."""
+    image pulls it back, whichever way it was off: under a pixel, and within the ADD limit (15 mm)
+    from 25-35 mm. At 0.7 m to 2-3 mm; at 1.2 m, where the object is 60 px wide and 1 px of its
+    outline is 2 % of depth, to 3-12 mm, which moves with the refinement's settings (ad-hoc sweep of
+    the prior weight and the rounds, 2026-11-23)."""
     obj = registry.get("default")
     refiner = ContourRefiner(obj.vertices, obj.faces, obj.keypoints)
-    for (rgb, T_gt), depth, turn in zip(rendered, (1.04, 0.96), (0.03, -0.03)):
+    for (rgb, T_gt), depth, turn, within_m in zip(rendered, (1.04, 0.96), (0.03, -0.03), (0.003, 0.0125)):
         T_off = T_gt.copy()
         T_off[:3, :3] = so3.exp(np.array([turn, -turn, turn])) @ T_gt[:3, :3]
         T_off[:3, 3] *= depth
         T, info = refiner.refine(rgb, CAMERA.K, T_off)
         assert not info["kept"] and info["points"] > 100 and info["fit"] > 0.8
         assert metrics.add_m(T_off, T_gt, obj.vertices) > 0.025
-        assert metrics.add_m(T, T_gt, obj.vertices) < 0.006
+        assert metrics.add_m(T, T_gt, obj.vertices) < within_m
         assert metrics.proj_px(T, T_gt, CAMERA, obj.vertices) < 1.0
 
 
