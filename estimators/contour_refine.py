@@ -8,7 +8,7 @@ draws the silhouette (the mesh's triangles, four times oversampled), takes point
 contour with their outward normals, finds the edge along each normal (the largest change of colour
 within `search_px`, favouring the nearest), and solves the 6 pose parameters by robust least
 squares (scipy, Cauchy loss) on the points' distances to their edges along the normals, with the
-starting pose's projected keypoints as a prior so that a few false edges cannot drag it far. In the
+starting pose's projected keypoints as a weak prior so that a few false edges cannot drag it far. In the
 last round, once the pose is near, the points left more than `fit_px` off their edge are dropped
 and the pose solved again: the false edges are mostly the object's own print just inside its
 outline, so they lean one way, and even down-weighted they pulled the pose too far (docs/pvnet.md).
@@ -167,15 +167,12 @@ class ContourRefiner:
             J = np.concatenate([d_rot, d_uv], axis=2)  # (N, 2, 6)
             return np.vstack([np.einsum("ni,nij->nj", normals, J[:m]), w * J[m:].reshape(-1, 6)])
 
-        def solve(rows: np.ndarray) -> np.ndarray:
-            keep = np.concatenate([rows, np.ones(2 * len(self.keypoints), bool)])
-            return least_squares(lambda x: residuals(x)[keep], np.zeros(6), jac=lambda x: jacobian(x)[keep],
-                                 loss="cauchy", f_scale=self.config.robust_px, x_scale="jac").x
-
-        x = solve(np.ones(m, bool))
-        near = np.abs(residuals(x)[:m]) < self.config.fit_px  # trimmed: the one-sided false edges out
-        if trim and near.sum() >= self.config.min_points:
-            x = solve(near)
+        x = least_squares(residuals, np.zeros(6), jac=jacobian, loss="cauchy", f_scale=self.config.robust_px,
+                          x_scale="jac").x
+        if trim:  # the one-sided false edges out, the same start solved again
+            near = np.abs(residuals(x)[:m]) < self.config.fit_px
+            if near.sum() >= self.config.min_points:
+                return self._fit(K, R, t, points_O[near], normals[near], targets[near], prior, trim=False)
         return so3.exp(x[:3]) @ R, t + x[3:]
 
     def refine(self, image: np.ndarray, K: np.ndarray, T_CO: np.ndarray) -> tuple[np.ndarray, dict]:

@@ -84,11 +84,14 @@ def rendered_frames(model_path: Path, n: int, seed: int, scenes: int, roll_deg: 
 
 def as_sent(frames, quality: int, chroma: str):
     """The frames JPEG-encoded as the device sends them and decoded as the service does."""
+    from flextrack.v1 import pose_estimation_pb2 as pb
     from runners.payload import frame_jpeg
+    from service.request_decoding import decode_image
 
     for name, rgb, camera, T_CO, group in frames:
-        bgr = cv2.imdecode(np.frombuffer(frame_jpeg(rgb, quality, chroma), np.uint8), cv2.IMREAD_COLOR)
-        yield name, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), camera, T_CO, group
+        image = pb.Image(encoding=pb.Image.JPEG, data=frame_jpeg(rgb, quality, chroma), width=rgb.shape[1],
+                         height=rgb.shape[0])
+        yield name, decode_image(image, camera), camera, T_CO, group
 
 
 def bop_frames(scene_dir: Path, obj_id: int):
