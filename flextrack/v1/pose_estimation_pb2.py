@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\"flextrack/v1/pose_estimation.proto\x12\x0c\x66lextrack.v1\"\xba\x01\n\x05Image\x12.\n\x08\x65ncoding\x18\x01 \x01(\x0e\x32\x1c.flextrack.v1.Image.Encoding\x12\x0c\n\x04\x64\x61ta\x18\x02 \x01(\x0c\x12\r\n\x05width\x18\x03 \x01(\r\x12\x0e\n\x06height\x18\x04 \x01(\r\"T\n\x08\x45ncoding\x12\x18\n\x14\x45NCODING_UNSPECIFIED\x10\x00\x12\x08\n\x04JPEG\x10\x01\x12\x07\n\x03PNG\x10\x02\x12\x0c\n\x08RAW_RGB8\x10\x03\x12\r\n\tRAW_GRAY8\x10\x04\"o\n\nIntrinsics\x12\n\n\x02\x66x\x18\x01 \x01(\x01\x12\n\n\x02\x66y\x18\x02 \x01(\x01\x12\n\n\x02\x63x\x18\x03 \x01(\x01\x12\n\n\x02\x63y\x18\x04 \x01(\x01\x12\r\n\x05width\x18\x05 \x01(\r\x12\x0e\n\x06height\x18\x06 \x01(\r\x12\x12\n\ndistortion\x18\x07 \x03(\x01\",\n\x08Keypoint\x12\n\n\x02id\x18\x01 \x01(\r\x12\t\n\x01u\x18\x02 \x01(\x01\x12\t\n\x01v\x18\x03 \x01(\x01\"Z\n\x04Pose\x12\n\n\x02tx\x18\x01 \x01(\x01\x12\n\n\x02ty\x18\x02 \x01(\x01\x12\n\n\x02tz\x18\x03 \x01(\x01\x12\n\n\x02qw\x18\x04 \x01(\x01\x12\n\n\x02qx\x18\x05 \x01(\x01\x12\n\n\x02qy\x18\x06 \x01(\x01\x12\n\n\x02qz\x18\x07 \x01(\x01\"\x9b\x02\n\x0f\x45stimateRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\x10\n\x08\x66rame_id\x18\x02 \x01(\x04\x12\x17\n\x0f\x63\x61pture_time_ns\x18\x03 \x01(\x03\x12\x11\n\testimator\x18\x04 \x01(\t\x12\x11\n\tobject_id\x18\x05 \x01(\t\x12\"\n\x05image\x18\x06 \x01(\x0b\x32\x13.flextrack.v1.Image\x12,\n\nintrinsics\x18\x07 \x01(\x0b\x32\x18.flextrack.v1.Intrinsics\x12)\n\tkeypoints\x18\x08 \x03(\x0b\x32\x16.flextrack.v1.Keypoint\x12\x10\n\x08sequence\x18\t \x01(\t\x12\x14\n\x0c\x63lient_state\x18\n \x01(\x0c\"\xc7\x03\n\x10\x45stimateResponse\x12\x10\n\x08\x66rame_id\x18\x01 \x01(\x04\x12\x17\n\x0f\x63\x61pture_time_ns\x18\x02 \x01(\x03\x12\x35\n\x06status\x18\x03 \x01(\x0e\x32%.flextrack.v1.EstimateResponse.Status\x12\x0f\n\x07message\x18\x04 \x01(\t\x12 \n\x04pose\x18\x05 \x01(\x0b\x32\x12.flextrack.v1.Pose\x12\x12\n\nconfidence\x18\x06 \x01(\x01\x12\x11\n\testimator\x18\x07 \x01(\t\x12\x16\n\x0eserver_time_ms\x18\x08 \x01(\x01\x12=\n\x08stage_ms\x18\t \x03(\x0b\x32+.flextrack.v1.EstimateResponse.StageMsEntry\x1a.\n\x0cStageMsEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\"p\n\x06Status\x12\x16\n\x12STATUS_UNSPECIFIED\x10\x00\x12\x06\n\x02OK\x10\x01\x12\x14\n\x10OBJECT_NOT_FOUND\x10\x02\x12\x11\n\rINVALID_INPUT\x10\x03\x12\x0c\n\x08INTERNAL\x10\x04\x12\x0f\n\x0bUNAVAILABLE\x10\x05\"\x17\n\x15ListEstimatorsRequest\"\x85\x01\n\rEstimatorInfo\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0c\n\x04kind\x18\x02 \x01(\t\x12\x0f\n\x07version\x18\x03 \x01(\t\x12\x0f\n\x07objects\x18\x04 \x03(\t\x12\r\n\x05ready\x18\x05 \x01(\x08\x12\x12\n\nis_default\x18\x06 \x01(\x08\x12\x13\n\x0b\x64\x65scription\x18\x07 \x01(\t\"I\n\x16ListEstimatorsResponse\x12/\n\nestimators\x18\x01 \x03(\x0b\x32\x1b.flextrack.v1.EstimatorInfo2\x84\x02\n\x0ePoseEstimation\x12I\n\x08\x45stimate\x12\x1d.flextrack.v1.EstimateRequest\x1a\x1e.flextrack.v1.EstimateResponse\x12J\n\x05Track\x12\x1d.flextrack.v1.EstimateRequest\x1a\x1e.flextrack.v1.EstimateResponse(\x01\x30\x01\x12[\n\x0eListEstimators\x12#.flextrack.v1.ListEstimatorsRequest\x1a$.flextrack.v1.ListEstimatorsResponseb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\"flextrack/v1/pose_estimation.proto\x12\x0c\x66lextrack.v1\"\xba\x01\n\x05Image\x12.\n\x08\x65ncoding\x18\x01 \x01(\x0e\x32\x1c.flextrack.v1.Image.Encoding\x12\x0c\n\x04\x64\x61ta\x18\x02 \x01(\x0c\x12\r\n\x05width\x18\x03 \x01(\r\x12\x0e\n\x06height\x18\x04 \x01(\r\"T\n\x08\x45ncoding\x12\x18\n\x14\x45NCODING_UNSPECIFIED\x10\x00\x12\x08\n\x04JPEG\x10\x01\x12\x07\n\x03PNG\x10\x02\x12\x0c\n\x08RAW_RGB8\x10\x03\x12\r\n\tRAW_GRAY8\x10\x04\"o\n\nIntrinsics\x12\n\n\x02\x66x\x18\x01 \x01(\x01\x12\n\n\x02\x66y\x18\x02 \x01(\x01\x12\n\n\x02\x63x\x18\x03 \x01(\x01\x12\n\n\x02\x63y\x18\x04 \x01(\x01\x12\r\n\x05width\x18\x05 \x01(\r\x12\x0e\n\x06height\x18\x06 \x01(\r\x12\x12\n\ndistortion\x18\x07 \x03(\x01\",\n\x08Keypoint\x12\n\n\x02id\x18\x01 \x01(\r\x12\t\n\x01u\x18\x02 \x01(\x01\x12\t\n\x01v\x18\x03 \x01(\x01\"Z\n\x04Pose\x12\n\n\x02tx\x18\x01 \x01(\x01\x12\n\n\x02ty\x18\x02 \x01(\x01\x12\n\n\x02tz\x18\x03 \x01(\x01\x12\n\n\x02qw\x18\x04 \x01(\x01\x12\n\n\x02qx\x18\x05 \x01(\x01\x12\n\n\x02qy\x18\x06 \x01(\x01\x12\n\n\x02qz\x18\x07 \x01(\x01\"\x1e\n\x0ePoseCovariance\x12\x0c\n\x04\x64\x61ta\x18\x01 \x03(\x01\"_\n\tPosePrior\x12 \n\x04pose\x18\x01 \x01(\x0b\x32\x12.flextrack.v1.Pose\x12\x30\n\ncovariance\x18\x02 \x01(\x0b\x32\x1c.flextrack.v1.PoseCovariance\"\xc3\x02\n\x0f\x45stimateRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\x10\n\x08\x66rame_id\x18\x02 \x01(\x04\x12\x17\n\x0f\x63\x61pture_time_ns\x18\x03 \x01(\x03\x12\x11\n\testimator\x18\x04 \x01(\t\x12\x11\n\tobject_id\x18\x05 \x01(\t\x12\"\n\x05image\x18\x06 \x01(\x0b\x32\x13.flextrack.v1.Image\x12,\n\nintrinsics\x18\x07 \x01(\x0b\x32\x18.flextrack.v1.Intrinsics\x12)\n\tkeypoints\x18\x08 \x03(\x0b\x32\x16.flextrack.v1.Keypoint\x12\x10\n\x08sequence\x18\t \x01(\t\x12\x14\n\x0c\x63lient_state\x18\n \x01(\x0c\x12&\n\x05prior\x18\x0b \x01(\x0b\x32\x17.flextrack.v1.PosePrior\"\xfe\x03\n\x10\x45stimateResponse\x12\x10\n\x08\x66rame_id\x18\x01 \x01(\x04\x12\x17\n\x0f\x63\x61pture_time_ns\x18\x02 \x01(\x03\x12\x35\n\x06status\x18\x03 \x01(\x0e\x32%.flextrack.v1.EstimateResponse.Status\x12\x0f\n\x07message\x18\x04 \x01(\t\x12 \n\x04pose\x18\x05 \x01(\x0b\x32\x12.flextrack.v1.Pose\x12\x12\n\nconfidence\x18\x06 \x01(\x01\x12\x11\n\testimator\x18\x07 \x01(\t\x12\x16\n\x0eserver_time_ms\x18\x08 \x01(\x01\x12=\n\x08stage_ms\x18\t \x03(\x0b\x32+.flextrack.v1.EstimateResponse.StageMsEntry\x12\x35\n\x0fpose_covariance\x18\n \x01(\x0b\x32\x1c.flextrack.v1.PoseCovariance\x1a.\n\x0cStageMsEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\"p\n\x06Status\x12\x16\n\x12STATUS_UNSPECIFIED\x10\x00\x12\x06\n\x02OK\x10\x01\x12\x14\n\x10OBJECT_NOT_FOUND\x10\x02\x12\x11\n\rINVALID_INPUT\x10\x03\x12\x0c\n\x08INTERNAL\x10\x04\x12\x0f\n\x0bUNAVAILABLE\x10\x05\"\x17\n\x15ListEstimatorsRequest\"\x85\x01\n\rEstimatorInfo\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0c\n\x04kind\x18\x02 \x01(\t\x12\x0f\n\x07version\x18\x03 \x01(\t\x12\x0f\n\x07objects\x18\x04 \x03(\t\x12\r\n\x05ready\x18\x05 \x01(\x08\x12\x12\n\nis_default\x18\x06 \x01(\x08\x12\x13\n\x0b\x64\x65scription\x18\x07 \x01(\t\"I\n\x16ListEstimatorsResponse\x12/\n\nestimators\x18\x01 \x03(\x0b\x32\x1b.flextrack.v1.EstimatorInfo2\x84\x02\n\x0ePoseEstimation\x12I\n\x08\x45stimate\x12\x1d.flextrack.v1.EstimateRequest\x1a\x1e.flextrack.v1.EstimateResponse\x12J\n\x05Track\x12\x1d.flextrack.v1.EstimateRequest\x1a\x1e.flextrack.v1.EstimateResponse(\x01\x30\x01\x12[\n\x0eListEstimators\x12#.flextrack.v1.ListEstimatorsRequest\x1a$.flextrack.v1.ListEstimatorsResponseb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -43,20 +43,24 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_KEYPOINT']._serialized_end=398
   _globals['_POSE']._serialized_start=400
   _globals['_POSE']._serialized_end=490
-  _globals['_ESTIMATEREQUEST']._serialized_start=493
-  _globals['_ESTIMATEREQUEST']._serialized_end=776
-  _globals['_ESTIMATERESPONSE']._serialized_start=779
-  _globals['_ESTIMATERESPONSE']._serialized_end=1234
-  _globals['_ESTIMATERESPONSE_STAGEMSENTRY']._serialized_start=1074
-  _globals['_ESTIMATERESPONSE_STAGEMSENTRY']._serialized_end=1120
-  _globals['_ESTIMATERESPONSE_STATUS']._serialized_start=1122
-  _globals['_ESTIMATERESPONSE_STATUS']._serialized_end=1234
-  _globals['_LISTESTIMATORSREQUEST']._serialized_start=1236
-  _globals['_LISTESTIMATORSREQUEST']._serialized_end=1259
-  _globals['_ESTIMATORINFO']._serialized_start=1262
-  _globals['_ESTIMATORINFO']._serialized_end=1395
-  _globals['_LISTESTIMATORSRESPONSE']._serialized_start=1397
-  _globals['_LISTESTIMATORSRESPONSE']._serialized_end=1470
-  _globals['_POSEESTIMATION']._serialized_start=1473
-  _globals['_POSEESTIMATION']._serialized_end=1733
+  _globals['_POSECOVARIANCE']._serialized_start=492
+  _globals['_POSECOVARIANCE']._serialized_end=522
+  _globals['_POSEPRIOR']._serialized_start=524
+  _globals['_POSEPRIOR']._serialized_end=619
+  _globals['_ESTIMATEREQUEST']._serialized_start=622
+  _globals['_ESTIMATEREQUEST']._serialized_end=945
+  _globals['_ESTIMATERESPONSE']._serialized_start=948
+  _globals['_ESTIMATERESPONSE']._serialized_end=1458
+  _globals['_ESTIMATERESPONSE_STAGEMSENTRY']._serialized_start=1298
+  _globals['_ESTIMATERESPONSE_STAGEMSENTRY']._serialized_end=1344
+  _globals['_ESTIMATERESPONSE_STATUS']._serialized_start=1346
+  _globals['_ESTIMATERESPONSE_STATUS']._serialized_end=1458
+  _globals['_LISTESTIMATORSREQUEST']._serialized_start=1460
+  _globals['_LISTESTIMATORSREQUEST']._serialized_end=1483
+  _globals['_ESTIMATORINFO']._serialized_start=1486
+  _globals['_ESTIMATORINFO']._serialized_end=1619
+  _globals['_LISTESTIMATORSRESPONSE']._serialized_start=1621
+  _globals['_LISTESTIMATORSRESPONSE']._serialized_end=1694
+  _globals['_POSEESTIMATION']._serialized_start=1697
+  _globals['_POSEESTIMATION']._serialized_end=1957
 # @@protoc_insertion_point(module_scope)

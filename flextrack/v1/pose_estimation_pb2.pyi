@@ -77,8 +77,22 @@ class Pose(_message.Message):
     qz: float
     def __init__(self, tx: _Optional[float] = ..., ty: _Optional[float] = ..., tz: _Optional[float] = ..., qw: _Optional[float] = ..., qx: _Optional[float] = ..., qy: _Optional[float] = ..., qz: _Optional[float] = ...) -> None: ...
 
+class PoseCovariance(_message.Message):
+    __slots__ = ("data",)
+    DATA_FIELD_NUMBER: _ClassVar[int]
+    data: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, data: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class PosePrior(_message.Message):
+    __slots__ = ("pose", "covariance")
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    COVARIANCE_FIELD_NUMBER: _ClassVar[int]
+    pose: Pose
+    covariance: PoseCovariance
+    def __init__(self, pose: _Optional[_Union[Pose, _Mapping]] = ..., covariance: _Optional[_Union[PoseCovariance, _Mapping]] = ...) -> None: ...
+
 class EstimateRequest(_message.Message):
-    __slots__ = ("session_id", "frame_id", "capture_time_ns", "estimator", "object_id", "image", "intrinsics", "keypoints", "sequence", "client_state")
+    __slots__ = ("session_id", "frame_id", "capture_time_ns", "estimator", "object_id", "image", "intrinsics", "keypoints", "sequence", "client_state", "prior")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     FRAME_ID_FIELD_NUMBER: _ClassVar[int]
     CAPTURE_TIME_NS_FIELD_NUMBER: _ClassVar[int]
@@ -89,6 +103,7 @@ class EstimateRequest(_message.Message):
     KEYPOINTS_FIELD_NUMBER: _ClassVar[int]
     SEQUENCE_FIELD_NUMBER: _ClassVar[int]
     CLIENT_STATE_FIELD_NUMBER: _ClassVar[int]
+    PRIOR_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     frame_id: int
     capture_time_ns: int
@@ -99,10 +114,11 @@ class EstimateRequest(_message.Message):
     keypoints: _containers.RepeatedCompositeFieldContainer[Keypoint]
     sequence: str
     client_state: bytes
-    def __init__(self, session_id: _Optional[str] = ..., frame_id: _Optional[int] = ..., capture_time_ns: _Optional[int] = ..., estimator: _Optional[str] = ..., object_id: _Optional[str] = ..., image: _Optional[_Union[Image, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., keypoints: _Optional[_Iterable[_Union[Keypoint, _Mapping]]] = ..., sequence: _Optional[str] = ..., client_state: _Optional[bytes] = ...) -> None: ...
+    prior: PosePrior
+    def __init__(self, session_id: _Optional[str] = ..., frame_id: _Optional[int] = ..., capture_time_ns: _Optional[int] = ..., estimator: _Optional[str] = ..., object_id: _Optional[str] = ..., image: _Optional[_Union[Image, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., keypoints: _Optional[_Iterable[_Union[Keypoint, _Mapping]]] = ..., sequence: _Optional[str] = ..., client_state: _Optional[bytes] = ..., prior: _Optional[_Union[PosePrior, _Mapping]] = ...) -> None: ...
 
 class EstimateResponse(_message.Message):
-    __slots__ = ("frame_id", "capture_time_ns", "status", "message", "pose", "confidence", "estimator", "server_time_ms", "stage_ms")
+    __slots__ = ("frame_id", "capture_time_ns", "status", "message", "pose", "confidence", "estimator", "server_time_ms", "stage_ms", "pose_covariance")
     class Status(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
         __slots__ = ()
         STATUS_UNSPECIFIED: _ClassVar[EstimateResponse.Status]
@@ -133,6 +149,7 @@ class EstimateResponse(_message.Message):
     ESTIMATOR_FIELD_NUMBER: _ClassVar[int]
     SERVER_TIME_MS_FIELD_NUMBER: _ClassVar[int]
     STAGE_MS_FIELD_NUMBER: _ClassVar[int]
+    POSE_COVARIANCE_FIELD_NUMBER: _ClassVar[int]
     frame_id: int
     capture_time_ns: int
     status: EstimateResponse.Status
@@ -142,7 +159,8 @@ class EstimateResponse(_message.Message):
     estimator: str
     server_time_ms: float
     stage_ms: _containers.ScalarMap[str, float]
-    def __init__(self, frame_id: _Optional[int] = ..., capture_time_ns: _Optional[int] = ..., status: _Optional[_Union[EstimateResponse.Status, str]] = ..., message: _Optional[str] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., confidence: _Optional[float] = ..., estimator: _Optional[str] = ..., server_time_ms: _Optional[float] = ..., stage_ms: _Optional[_Mapping[str, float]] = ...) -> None: ...
+    pose_covariance: PoseCovariance
+    def __init__(self, frame_id: _Optional[int] = ..., capture_time_ns: _Optional[int] = ..., status: _Optional[_Union[EstimateResponse.Status, str]] = ..., message: _Optional[str] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., confidence: _Optional[float] = ..., estimator: _Optional[str] = ..., server_time_ms: _Optional[float] = ..., stage_ms: _Optional[_Mapping[str, float]] = ..., pose_covariance: _Optional[_Union[PoseCovariance, _Mapping]] = ...) -> None: ...
 
 class ListEstimatorsRequest(_message.Message):
     __slots__ = ()
