@@ -50,6 +50,8 @@ class EstimateInput:
     camera: PinholeCamera | None = None  # None when the request carried no intrinsics
     image: np.ndarray | None = None  # HxWx3 uint8 RGB or HxW gray; None unless the estimator uses images
     keypoints: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (N, 3) rows: id, u, v (px)
+    prior_T_CO: np.ndarray | None = None  # the device's predicted T_CO at the capture time, when it sent one
+    prior_covariance: np.ndarray | None = None  # its 6x6 covariance (flextrack.wire convention); None: not sent
 
 
 @dataclass
@@ -57,6 +59,7 @@ class EstimateOutput:
     status: Status
     T_CO: np.ndarray | None = None  # 4x4, metres, at the input's capture time
     confidence: float = 0.0  # 0..1
+    covariance: np.ndarray | None = None  # 6x6 of T_CO in the flextrack.wire convention; set with every pose
     message: str = ""
     stage_ms: dict[str, float] = field(default_factory=dict)
 

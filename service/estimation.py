@@ -11,7 +11,7 @@ import time
 
 from estimators.base import EstimateInput, EstimatorError, InvalidInput, Status, UnknownEstimator
 from estimators.registry import EstimatorRegistry
-from flextrack.geometry import se3
+from flextrack import wire
 from flextrack.v1 import pose_estimation_pb2 as pb
 from service import request_decoding
 
@@ -48,6 +48,7 @@ class EstimationService:
         estimator = self.registry.get(request.estimator)
         camera = request_decoding.decode_camera(request.intrinsics)
         keypoints = request_decoding.decode_keypoints(request.keypoints)
+        prior_T_CO, prior_covariance = request_decoding.decode_prior(request)
         if estimator.uses_image:
             image = request_decoding.decode_image(request.image, camera)
             if image is None:
@@ -58,19 +59,18 @@ class EstimationService:
         decoded = time.perf_counter()
         out = estimator.estimate(EstimateInput(
             frame_id=request.frame_id, capture_time_ns=request.capture_time_ns, object_id=request.object_id,
-            sequence=request.sequence, camera=camera, image=image, keypoints=keypoints))
+            sequence=request.sequence, camera=camera, image=image, keypoints=keypoints, prior_T_CO=prior_T_CO,
+            prior_covariance=prior_covariance))
         done = time.perf_counter()
-        pose = None
-        if out.T_CO is not None:
-            q, t = se3.to_quat_translation(out.T_CO)
-            pose = pb.Pose(tx=t[0], ty=t[1], tz=t[2], qw=q[0], qx=q[1], qy=q[2], qz=q[3])
+        pose = wire.pose_to_pb(out.T_CO) if out.T_CO is not None else None
+        covariance = wire.covariance_to_pb(out.covariance) if out.T_CO is not None else None
         # Stage timings only for estimators that report stages: filling the map costs more than the
         # oracle's whole estimate, and server_time_ms already covers a single-stage one.
         stage_ms = {"decode": (decoded - start) * 1e3, "estimate": (done - decoded) * 1e3, **out.stage_ms} \
             if out.stage_ms else None
         return pb.EstimateResponse(
             frame_id=request.frame_id, capture_time_ns=request.capture_time_ns, status=PB_STATUS[out.status],
-            message=out.message, pose=pose, confidence=out.confidence,
+            message=out.message, pose=pose, pose_covariance=covariance, confidence=out.confidence,
             estimator=f"{estimator.name}@{estimator.version}", server_time_ms=(done - start) * 1e3, stage_ms=stage_ms)
 
     def answer(self, request: pb.EstimateRequest) -> pb.EstimateResponse:

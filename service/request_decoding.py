@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from estimators.base import InvalidInput
+from flextrack import wire
 from flextrack.geometry.camera import PinholeCamera
 from flextrack.v1 import pose_estimation_pb2 as pb
 
@@ -36,6 +37,27 @@ def decode_camera(intr: pb.Intrinsics) -> PinholeCamera | None:
         raise InvalidInput(f"distortion needs one of {DISTORTION_LENGTHS} coefficients (OpenCV order), "
                            f"got {len(distortion)}")
     return PinholeCamera(fx, fy, cx, cy, width, height, distortion)
+
+
+def decode_prior(request: pb.EstimateRequest) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(T_CO, covariance) of the request's prior: (None, None) when it has none; the covariance is None
+    when the prior came without one (the estimator's documented default applies)."""
+    if not request.HasField("prior"):
+        return None, None
+    prior = request.prior
+    if not prior.HasField("pose"):
+        raise InvalidInput("prior must carry a pose (T_CO at the capture time)")
+    p = prior.pose
+    q = np.array([p.qw, p.qx, p.qy, p.qz])
+    _finite("prior pose", p.tx, p.ty, p.tz, *q)
+    if abs(float(np.linalg.norm(q)) - 1.0) > 1e-3:
+        raise InvalidInput(f"prior pose must be a rigid transform: its quaternion has norm {np.linalg.norm(q):.6g}, not 1")
+    T = wire.pose_from_pb(p)
+    try:
+        cov = wire.covariance_from_pb(prior.covariance, "prior covariance")
+    except wire.BadCovariance as exc:
+        raise InvalidInput(str(exc)) from None
+    return T, cov
 
 
 def decode_keypoints(keypoints) -> np.ndarray:
