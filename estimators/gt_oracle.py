@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from datasets import sequence as sequence_io
 from estimators.base import EstimateInput, EstimateOutput, Estimator, Status, UnknownSequence
+from flextrack.formats import sequence as sequence_io
 from flextrack.geometry import se3, so3
 from flextrack.geometry.camera import PinholeCamera
 

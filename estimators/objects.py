@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from datasets import bop
 from estimators.base import UnknownObject
+from flextrack.formats import bop
 from flextrack.geometry.camera import bbox_corners
 
 DEFAULT_KEYPOINT_COUNT = 8

@@ -13,15 +13,15 @@ import sys
 
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("runners.demo", "start a backend, track a simulated sequence live over gRPC, print errors, write plots"),
+    "demo": ("flextrack.runners.demo", "start a backend, track a simulated sequence live over gRPC, print errors, write plots"),
     "serve": ("service.cli", "run the PoseEstimation gRPC server"),
-    "simulate": ("simulator.cli", "generate a synthetic sequence folder (trajectory, IMU, ground truth, frames)"),
-    "convert-euroc": ("simulator.euroc_cli", "turn a EuRoC IMU + ground-truth recording into a sequence folder"),
-    "track": ("runners.track_cli", "replay a sequence folder through the tracker and report its errors"),
-    "experiment": ("experiments.cli", "rerun the paper's experiments: table2, ablation, timing, euroc"),
-    "train": ("training.cli", "train the PVNet-style network on rendered views and export it to ONNX"),
-    "bench": ("benchmarks.cli", "benchmarks that print figures: service throughput, rendering, estimators"),
-    "loadtest": ("loadtest.cli", "load-test a running service with many Track streams"),
+    "simulate": ("flextrack.simulator.cli", "generate a synthetic sequence folder (trajectory, IMU, ground truth, frames)"),
+    "convert-euroc": ("flextrack.simulator.euroc_cli", "turn a EuRoC IMU + ground-truth recording into a sequence folder"),
+    "track": ("flextrack.runners.track_cli", "replay a sequence folder through the tracker and report its errors"),
+    "experiment": ("flextrack.experiments.cli", "rerun the paper's experiments: table2, ablation, timing, euroc"),
+    "train": ("flextrack.training.cli", "train the PVNet-style network on rendered views and export it to ONNX"),
+    "bench": ("flextrack.benchmarks.cli", "benchmarks that print figures: service throughput, rendering, estimators"),
+    "loadtest": ("flextrack.loadtest.cli", "load-test a running service with many Track streams"),
 }
 
 

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from benchmarks.tracker_world import BOX_O, CAMERA, G_O, Motion, drive
 from client_sdk import Status, TrackerOptions
 from client_sdk.refinement import blend_pose, bscm
+from flextrack.benchmarks.tracker_world import BOX_O, CAMERA, G_O, Motion, drive
 from flextrack.geometry import se3, so3
 from flextrack.geometry.metrics import proj_px
 

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from benchmarks.tracker_world import BOX_O, CAMERA, G_O, Motion, drive
 from client_sdk import ResponseOutcome, TrackerOptions
 from client_sdk.propagation import rotate, step_midpoint, step_paper
+from flextrack.benchmarks.tracker_world import BOX_O, CAMERA, G_O, Motion, drive
 from flextrack.geometry import so3
 from flextrack.geometry.metrics import proj_px, re_deg, te_mm
 

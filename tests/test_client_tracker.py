@@ -6,10 +6,10 @@ import sys
 import numpy as np
 import pytest
 
-from benchmarks.tracker_world import BOX_O, CAMERA, G_O, T_BC, Motion, drive
 from client_sdk import ResponseOutcome, Status, Tracker, TrackerOptions
 from client_sdk import state as state_codec
 from client_sdk.propagation import propagate, step_paper
+from flextrack.benchmarks.tracker_world import BOX_O, CAMERA, G_O, T_BC, Motion, drive
 from flextrack.geometry import se3, so3
 from flextrack.geometry.metrics import proj_px
 
@@ -240,7 +240,7 @@ def test_ablation_switches():
 
 def test_client_sdk_imports_nothing_heavy():
     code = ("import sys, client_sdk, client_sdk.tracker; "
-            "bad = [m for m in ('scipy', 'cv2', 'torch', 'onnxruntime', 'service', 'estimators', 'simulator', "
+            "bad = [m for m in ('scipy', 'cv2', 'torch', 'onnxruntime', 'service', 'estimators', 'flextrack.simulator', "
             "'matplotlib', 'trimesh', 'pyrender') if m in sys.modules]; print(bad); sys.exit(1 if bad else 0)")
     out = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True)
     assert out.returncode == 0, out.stdout + out.stderr

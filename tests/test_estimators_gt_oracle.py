@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from benchmarks.toy_sequence import write_orbit_sequence
-from datasets import sequence as sequence_io
 from estimators.base import EstimateInput, Status, UnknownObject, UnknownSequence
 from estimators.gt_oracle import GtOracleEstimator
 from estimators.registry import EstimatorRegistry
+from flextrack.benchmarks.toy_sequence import write_orbit_sequence
+from flextrack.formats import sequence as sequence_io
 from flextrack.geometry import se3, so3
 from flextrack.geometry.camera import PinholeCamera
 from flextrack.v1 import pose_estimation_pb2 as pb

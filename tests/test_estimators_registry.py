@@ -6,11 +6,11 @@ from pathlib import Path
 import pytest
 import trimesh
 
-from benchmarks.toy_sequence import write_orbit_sequence
 from estimators.base import UnknownEstimator
 from estimators.gt_oracle import GtOracleEstimator
 from estimators.pnp import PnpEstimator
 from estimators.registry import EstimatorRegistry, known_kinds
+from flextrack.benchmarks.toy_sequence import write_orbit_sequence
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -60,7 +60,7 @@ def test_ablation_writes_the_agreed_csv_and_the_sawtooth(tmp_path):
 
 
 def test_euroc_writes_the_agreed_csv(tmp_path):
-    from experiments.euroc import DEFAULT_DATA
+    from flextrack.experiments.euroc import DEFAULT_DATA
 
     if not DEFAULT_DATA.is_dir():
         pytest.skip(f"EuRoC data not found at {DEFAULT_DATA} (see shared/data/SOURCES.md)")
@@ -73,7 +73,7 @@ def test_euroc_writes_the_agreed_csv(tmp_path):
 
 def test_table2_with_the_pvnet_backend_renders_frames_and_reports_beside_the_oracle(tmp_path):
     pytest.importorskip("onnxruntime")
-    from experiments import table2_vision
+    from flextrack.experiments import table2_vision
 
     out = tmp_path / "t2v"
     rows = table2_vision.run(out, "pvnet", [0], duration_s=1.5, fps_list=(30,), motions=("translational",))

@@ -1,4 +1,4 @@
-"""The nginx gate in front of a server (loadtest/front_proxy.py, `flextrack bench capacity --front
+"""The nginx gate in front of a server (flextrack/loadtest/front_proxy.py, `flextrack bench capacity --front
 nginx`): past its bound on open Track streams a new device gets RESOURCE_EXHAUSTED with a retry
 pushback, from nginx itself; other calls pass through. The live test needs nginx and skips without it."""
 
@@ -9,9 +9,9 @@ import time
 import grpc
 import pytest
 
+from flextrack.loadtest import front_proxy, servers
 from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
-from loadtest import front_proxy, servers
 
 
 def test_config_bounds_track_streams_and_answers_the_excess_as_grpc(tmp_path):

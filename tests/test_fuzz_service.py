@@ -12,11 +12,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from benchmarks.toy_sequence import write_orbit_sequence
 from estimators.registry import EstimatorRegistry
+from flextrack.benchmarks.toy_sequence import write_orbit_sequence
+from flextrack.loadtest.workload import synthetic
 from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
-from loadtest.workload import synthetic
 from service.cli import DEFAULT_CONFIG
 from service.hardening import Hardening
 from service.server import BackgroundServer

@@ -15,9 +15,9 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from estimators.base import EstimateInput, EstimateOutput, Estimator, Status
 from estimators.registry import EstimatorRegistry
+from flextrack.loadtest import runner, workload
 from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
-from loadtest import runner, workload
 from service.admission import AdmissionInterceptor
 from service.hardening import Hardening
 from service.server import BackgroundServer
@@ -139,7 +139,7 @@ def test_a_refused_stream_says_when_to_retry_jittered():
 
 
 def test_the_refusal_probe_times_a_full_server_and_passes_an_open_one():
-    from benchmarks.refusal_probe import probe
+    from flextrack.benchmarks.refusal_probe import probe
 
     estimator, hardening = SlowEstimator(0.002), Hardening(max_streams=1)
     with BackgroundServer(EstimatorRegistry([estimator]), grace_s=0.0, hardening=hardening) as srv:

@@ -7,11 +7,11 @@ import json
 
 import pytest
 
-from benchmarks.toy_sequence import write_orbit_sequence
 from estimators.gt_oracle import GtOracleEstimator
 from estimators.registry import EstimatorRegistry
+from flextrack.benchmarks.toy_sequence import write_orbit_sequence
 from flextrack.cli import main
-from loadtest import front_proxy, runner, workload
+from flextrack.loadtest import front_proxy, runner, workload
 from service.hardening import Hardening
 from service.server import BackgroundServer
 

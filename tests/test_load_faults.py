@@ -17,11 +17,11 @@ import pytest
 from client_sdk import TrackerOptions
 from client_sdk.network_model import NetworkOptions
 from client_sdk.transport import TransportOptions
-from datasets import sequence as sequence_io
-from loadtest import servers
-from runners import session
-from runners.live import LiveOptions, Progress, run_live
-from simulator.generate import generate_sequence
+from flextrack.formats import sequence as sequence_io
+from flextrack.loadtest import servers
+from flextrack.runners import session
+from flextrack.runners.live import LiveOptions, Progress, run_live
+from flextrack.simulator.generate import generate_sequence
 
 KILL_AT_S = 3.5  # sequence time (the IMU starts 2 s before the first frame)
 DOWN_S = 2.0

@@ -16,9 +16,9 @@ from estimators.objects import ObjectRegistry, load_object
 from estimators.pvnet import PvnetEstimator, _unturn
 from flextrack.geometry import metrics, se3, so3
 from flextrack.geometry.camera import PinholeCamera
-from training.cli import DEFAULT_OBJECT
-from training.export_onnx import export
-from training.pvnet_model import PvnetNet
+from flextrack.training.cli import DEFAULT_OBJECT
+from flextrack.training.export_onnx import export
+from flextrack.training.pvnet_model import PvnetNet
 
 SHIPPED = Path(__file__).resolve().parents[1] / "models" / "pvnet_default" / "pvnet.onnx"
 CAMERA = PinholeCamera.linemod()
@@ -71,8 +71,8 @@ def test_model_for_other_keypoints_is_refused(registry, tmp_path):
 @pytest.fixture(scope="module")
 def rendered():
     """Two frames of the default object on the simulator's table, about 0.7 and 1.2 m away."""
-    from simulator.render import Renderer
-    from simulator.scene import make_scene
+    from flextrack.simulator.render import Renderer
+    from flextrack.simulator.scene import make_scene
 
     verts = load_object("default", DEFAULT_OBJECT).vertices
     T_WO = se3.make(np.eye(3), [0, 0, -verts[:, 2].min()])

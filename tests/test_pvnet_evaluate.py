@@ -9,10 +9,10 @@ import pytest
 
 pytest.importorskip("onnxruntime")
 
-from datasets import bop
+from flextrack.formats import bop
 from flextrack.geometry import se3, so3
-from training.cli import DEFAULT_OBJECT
-from training.evaluate import bop_frames, evaluate, rendered_frames
+from flextrack.training.cli import DEFAULT_OBJECT
+from flextrack.training.evaluate import bop_frames, evaluate, rendered_frames
 
 SHIPPED = Path(__file__).resolve().parents[1] / "models" / "pvnet_default" / "pvnet.onnx"
 
@@ -58,8 +58,8 @@ def test_frames_as_sent_keep_their_colour_resolution():
 
     from PIL import Image, JpegImagePlugin
 
-    from runners.payload import frame_jpeg
-    from training.evaluate import as_sent
+    from flextrack.runners.payload import frame_jpeg
+    from flextrack.training.evaluate import as_sent
 
     stripes = np.zeros((48, 64, 3), np.uint8)
     stripes[:, ::2] = (200, 40, 40)  # 1 px columns of red and black: all colour detail

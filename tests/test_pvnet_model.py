@@ -6,8 +6,8 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("onnxruntime")
 
-from training.export_onnx import OPSET, export, max_difference
-from training.pvnet_model import PvnetNet
+from flextrack.training.export_onnx import OPSET, export, max_difference
+from flextrack.training.pvnet_model import PvnetNet
 
 
 @pytest.fixture(scope="module")

@@ -11,8 +11,8 @@ pytest.importorskip("pyrender")
 from estimators.objects import load_object
 from flextrack.geometry import se3
 from flextrack.geometry.camera import PinholeCamera
-from training.cli import DEFAULT_OBJECT
-from training.pvnet_data import PatchSampler, RenderedViews, full_to_input, render_views, targets
+from flextrack.training.cli import DEFAULT_OBJECT
+from flextrack.training.pvnet_data import PatchSampler, RenderedViews, full_to_input, render_views, targets
 
 
 @pytest.fixture(scope="module")

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from estimators.keypoint_voting import VotingConfig, vote
-from training.pvnet_data import targets
+from flextrack.training.pvnet_data import targets
 
 
 def _field(keypoints: np.ndarray, mask: np.ndarray):

@@ -6,13 +6,13 @@ import pytest
 
 from client_sdk import TrackerOptions
 from client_sdk.network_model import NetworkOptions
-from datasets import sequence as sequence_io
 from flextrack.cli import main
-from runners import session
-from runners.backends import oracle_registry
-from runners.live import LiveOptions, run_live
+from flextrack.formats import sequence as sequence_io
+from flextrack.runners import session
+from flextrack.runners.backends import oracle_registry
+from flextrack.runners.live import LiveOptions, run_live
+from flextrack.simulator.generate import generate_sequence
 from service.server import BackgroundServer
-from simulator.generate import generate_sequence
 
 
 @pytest.fixture(scope="module")

@@ -8,12 +8,12 @@ import pytest
 
 from client_sdk import TrackerOptions
 from client_sdk.network_model import NetworkOptions
-from datasets import sequence as sequence_io
-from runners import session
-from runners.backends import GrpcBackend, InProcessBackend, oracle_registry
-from runners.replay import ReplayOptions, replay
+from flextrack.formats import sequence as sequence_io
+from flextrack.runners import session
+from flextrack.runners.backends import GrpcBackend, InProcessBackend, oracle_registry
+from flextrack.runners.replay import ReplayOptions, replay
+from flextrack.simulator.generate import generate_sequence
 from service.server import BackgroundServer
-from simulator.generate import generate_sequence
 
 PROGRAMS = [(m, lv) for m in ("translational", "circular") for lv in ("easy", "medium", "hard")]
 

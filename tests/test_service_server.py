@@ -10,13 +10,13 @@ import trimesh
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 
-from benchmarks.toy_sequence import write_orbit_sequence
-from datasets import sequence as sequence_io
 from estimators.base import Estimator
 from estimators.gt_oracle import GtOracleEstimator
 from estimators.objects import ObjectRegistry, load_object
 from estimators.pnp import PnpEstimator
 from estimators.registry import EstimatorRegistry
+from flextrack.benchmarks.toy_sequence import write_orbit_sequence
+from flextrack.formats import sequence as sequence_io
 from flextrack.geometry import metrics, se3, so3
 from flextrack.geometry.camera import PinholeCamera
 from flextrack.v1 import pose_estimation_pb2 as pb

@@ -6,14 +6,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from datasets import euroc
-from datasets.sequence import load
 from flextrack.cli import main as flextrack_main
+from flextrack.formats import euroc
+from flextrack.formats.sequence import load
 from flextrack.geometry import se3, so3
-from simulator.default_object import DEFAULT_DIR
-from simulator.euroc_convert import convert_euroc, visibility
-from simulator.integrate import integrate
-from simulator.render import load_model
+from flextrack.simulator.default_object import DEFAULT_DIR
+from flextrack.simulator.euroc_convert import convert_euroc, visibility
+from flextrack.simulator.integrate import integrate
+from flextrack.simulator.render import load_model
 
 EUROC = Path(__file__).resolve().parents[2] / "shared" / "data" / "euroc_v1_02_medium"
 pytestmark = pytest.mark.skipif(not EUROC.exists(), reason=f"{EUROC} absent (shared data not mounted)")

@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 
 from flextrack.geometry import se3, so3
-from simulator import imu
-from simulator.generate import T_BC_PHONE
-from simulator.integrate import integrate
-from simulator.statistics import allan_deviation, expected_adev
-from simulator.trajectory import TABLE3, MotionProgram
+from flextrack.simulator import imu
+from flextrack.simulator.generate import T_BC_PHONE
+from flextrack.simulator.integrate import integrate
+from flextrack.simulator.statistics import allan_deviation, expected_adev
+from flextrack.simulator.trajectory import TABLE3, MotionProgram
 
 T_CB = se3.inverse(T_BC_PHONE)
 

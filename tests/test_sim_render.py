@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from datasets import bop
+from flextrack.formats import bop
 from flextrack.geometry import se3, so3
 from flextrack.geometry.camera import PinholeCamera, project_model
-from simulator import default_object
-from simulator.render import Renderer, load_model
-from simulator.scene import make_scene
+from flextrack.simulator import default_object
+from flextrack.simulator.render import Renderer, load_model
+from flextrack.simulator.scene import make_scene
 
 CAT = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo_cat" / "models" / "obj_000006.ply"
 DEFAULT_PLY = default_object.DEFAULT_DIR / "obj_000001.ply"
@@ -40,7 +40,7 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
 
 def test_default_object_regenerates_byte_identically(tmp_path):
     ply = default_object.write(tmp_path)
-    assert ply.read_bytes() == DEFAULT_PLY.read_bytes(), "run `python -m simulator.default_object` and commit"
+    assert ply.read_bytes() == DEFAULT_PLY.read_bytes(), "run `python -m flextrack.simulator.default_object` and commit"
     assert (tmp_path / "models_info.json").read_text() == (DEFAULT_PLY.parent / "models_info.json").read_text()
 
 

@@ -6,14 +6,14 @@ import cv2
 import numpy as np
 import pytest
 
-from datasets import bop, kalibr
-from datasets.sequence import load
 from flextrack.cli import main as flextrack_main
+from flextrack.formats import bop, kalibr
+from flextrack.formats.sequence import load
 from flextrack.geometry import se3
 from flextrack.geometry.camera import project_model
-from simulator.frames import SequenceFrames
-from simulator.generate import generate_sequence
-from simulator.plots import plot_sequence
+from flextrack.simulator.frames import SequenceFrames
+from flextrack.simulator.generate import generate_sequence
+from flextrack.simulator.plots import plot_sequence
 
 CAT = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo_cat" / "models" / "obj_000006.ply"
 

@@ -5,7 +5,7 @@ import pytest
 
 from flextrack.geometry import so3
 from flextrack.geometry.camera import PinholeCamera
-from simulator.trajectory import TABLE3, MotionProgram
+from flextrack.simulator.trajectory import TABLE3, MotionProgram
 
 PROGRAMS = list(TABLE3)
 

@@ -10,9 +10,9 @@ from client_sdk import network_model as nm
 from client_sdk.interceptor import LatencyInterceptor
 from client_sdk.transport import TrackClient, TransportOptions, make_request, retry_pushback_s
 from estimators.registry import EstimatorRegistry
+from flextrack.runners.payload import PAPER_JPEG_BYTES, stand_in_jpeg
 from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
-from runners.payload import PAPER_JPEG_BYTES, stand_in_jpeg
 from service.hardening import Hardening
 from service.server import BackgroundServer
 

@@ -1,0 +1,64 @@
+"""`flextrack experiment table2|ablation|timing|euroc --out DIR`: the paper's experiments, rerun.
+
+Each writes a Markdown report, CSV tables, PNG plots and TUM trajectories under DIR.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from flextrack.experiments import paper
+
+EXPERIMENTS = ("table2", "ablation", "timing", "euroc")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("experiment", choices=EXPERIMENTS)
+    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    parser.add_argument("--seeds", type=int, default=1, help="table2: number of seeds (0..N-1)")
+    parser.add_argument("--seed", type=int, default=0, help="ablation, timing, euroc: the seed")
+    parser.add_argument("--duration", type=float, default=30.0, help="seconds of motion per simulated sequence")
+    parser.add_argument("--fps", type=int, nargs="+", choices=paper.FPS,
+                        help="table2: frame rates (default: all four; with --backend 30 and 120)")
+    parser.add_argument("--in-process", action="store_true", help="call the backend in-process instead of gRPC")
+    parser.add_argument("--backend", default="oracles",
+                        help="table2: 'oracles' (GT and Noisy, the paper's table) or an image estimator of --config "
+                        "(e.g. pvnet), run beside gt_oracle on rendered frames (default cells: translational and "
+                        "circular medium at 30 and 120 FPS)")
+    parser.add_argument("--config", type=Path, help="table2 --backend: the service config (default "
+                        "service/default_config.toml)")
+    parser.add_argument("--backend-ms", type=float, default=145.0,
+                        help="table2 --backend: modelled compute time of the estimator per frame, ms (virtual time; "
+                        "145 = pvnet with its turned crops and outline refinement on this project's 2-core CPU, "
+                        "`flextrack bench pvnet`, with some margin)")
+    parser.add_argument("--data", type=Path, help="euroc: the EuRoC folder (default ../shared/data/euroc_v1_02_medium)")
+
+
+def run(args) -> int:
+    from flextrack.experiments import ablation, euroc, table2, table2_vision, timing  # the sim extra
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    try:
+        if args.experiment == "table2" and args.backend != "oracles":
+            table2_vision.run(args.out, args.backend, list(range(args.seeds)), args.duration, tuple(args.fps or (30, 120)),
+                              config=args.config or table2_vision.DEFAULT_CONFIG, backend_ms=args.backend_ms)
+        elif args.experiment == "table2":
+            table2.run(args.out, list(range(args.seeds)), args.duration, args.in_process, tuple(args.fps or paper.FPS))
+        elif args.experiment == "ablation":
+            ablation.run(args.out, args.seed, args.duration, in_process=args.in_process)
+        elif args.experiment == "timing":
+            timing.run(args.out, args.seed, args.duration)
+        else:
+            euroc.run(args.out, args.data or euroc.DEFAULT_DATA, args.seed, args.in_process)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"flextrack experiment {args.experiment}: {exc}", file=sys.stderr)
+        return 2
+    stem = args.experiment if args.experiment != "table2" or args.backend == "oracles" else f"table2_{args.backend}"
+    report = args.out / f"{stem}.md"
+    print(report.read_text())
+    print(f"wrote {report} and its CSV/PNG files in {time.perf_counter() - started:.0f} s")
+    return 0

@@ -1,0 +1,126 @@
+"""What every experiment shares: simulated sequences (cached by their settings), a backend server
+whose oracles learn sequences as they are generated, CSV/Markdown writing and a progress bar.
+"""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Self
+
+from tqdm import tqdm
+
+from client_sdk import TrackerOptions
+from client_sdk.options import preset
+from estimators.gt_oracle import GtOracleEstimator
+from estimators.registry import EstimatorRegistry
+from flextrack.formats import sequence as sequence_io
+from flextrack.formats.sequence import Sequence
+from flextrack.runners.backends import NOISY_R_DEG, NOISY_T_M, GrpcBackend, InProcessBackend
+from flextrack.runners.replay import ReplayOptions, replay
+from flextrack.runners.results import TrackRecord
+from flextrack.runners.session import model_vertices
+
+# The tracker as the paper describes it and ours (client_sdk.options.preset explains both).
+PAPER_FAITHFUL = preset("paper")
+OURS = preset("ours")
+TRACKER_VARIANTS = {"paper": PAPER_FAITHFUL, "ours": OURS}
+VARIANT_TITLES = {
+    "ours": "ours (pose_gain 0.5, gyro_bias_gain 0.005, accel_bias_gain 0.01, backend_gate_px 50)",
+    "paper": "paper-faithful (each backend pose resets the state; BSCM with the damped default gains)",
+    "vision": "vision (ours + pose_gain 1, gravity_follow 0.95, gyro_bias_gain 0, velocity_gain 1, accel_bias_gain 0.2: "
+              "the gyro trusted over a learned backend's orientation, each slow answer's velocity taken whole)",
+}
+
+
+@dataclass(frozen=True)
+class SimSpec:
+    motion: str
+    level: str
+    fps: float
+    seed: int = 0
+    duration_s: float = 30.0
+    imu: str = "pixel2"
+
+    @property
+    def name(self) -> str:
+        return f"{self.motion}_{self.level}_{self.fps:g}fps_{self.duration_s:g}s_{self.imu}_seed{self.seed}"
+
+
+def simulated(cache: Path, spec: SimSpec) -> Sequence:
+    """The sequence of `spec`, generated into `cache` the first time (no rendering: oracles need no pixels)."""
+    from flextrack.simulator.generate import generate_sequence
+
+    root = cache / spec.name
+    if not (root / "rig.yaml").is_file():
+        generate_sequence(spec.motion, spec.level, root, duration_s=spec.duration_s, fps=spec.fps, seed=spec.seed,
+                          imu_profile=spec.imu)
+    return sequence_io.load(root)
+
+
+class OracleBackend:
+    """"gt" and "noisy" oracles behind a real gRPC server (or in-process), learning sequences on the way."""
+
+    def __init__(self, noise_seed: int, in_process: bool = False):
+        self.gt = GtOracleEstimator("gt")
+        self.noisy = GtOracleEstimator("noisy", noise_t_m=NOISY_T_M, noise_r_deg=NOISY_R_DEG, seed=noise_seed)
+        self.registry = EstimatorRegistry([self.gt, self.noisy], default="gt")
+        self.in_process = in_process
+        self._server = None
+
+    def __enter__(self) -> Self:
+        if not self.in_process:
+            from service.server import BackgroundServer
+
+            self._server = BackgroundServer(self.registry).start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._server is not None:
+            self._server.stop()
+
+    def learn(self, seq: Sequence) -> None:
+        for oracle in (self.gt, self.noisy):
+            if seq.name not in oracle.sequences:
+                oracle.add_sequence(seq.root, seq.name)
+
+    @contextmanager
+    def client(self, options: ReplayOptions) -> Iterator:
+        if self._server is None:
+            yield InProcessBackend(self.registry, options.network)
+            return
+        backend = GrpcBackend(self._server.address, options.network)
+        try:
+            yield backend
+        finally:
+            backend.close()
+
+    def run(self, seq: Sequence, tracker_options: TrackerOptions, options: ReplayOptions) -> TrackRecord:
+        self.learn(seq)
+        with self.client(options) as backend:
+            return replay(seq, backend, model_vertices(seq), tracker_options, options)
+
+
+def write_csv(path: Path, header: list[str], rows: list[list]) -> Path:
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(header)
+        for row in rows:
+            w.writerow([f"{v:.4f}" if isinstance(v, float) else v for v in row])
+    return path
+
+
+def markdown_table(header: list[str], rows: list[list]) -> str:
+    def cell(v):
+        return f"{v:.2f}" if isinstance(v, float) else str(v)
+
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def progress(total: int, desc: str) -> tqdm:
+    return tqdm(total=total, desc=desc, unit="run", dynamic_ncols=True, leave=True)

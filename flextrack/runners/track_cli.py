@@ -1,0 +1,120 @@
+"""`flextrack track SEQ_DIR --out DIR`: run the tracker over one sequence folder and report its errors.
+
+By default the sequence is replayed in virtual time against a real gRPC server that this command
+starts on a loopback port (bit-identical for one seed); `--live` runs it in real time through the
+sleeping latency interceptor instead, and `--in-process` skips gRPC in the replay.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import fields, replace
+from pathlib import Path
+
+from client_sdk import TrackerOptions
+from client_sdk.network_model import NetworkOptions
+from client_sdk.options import preset
+from client_sdk.slowdown import PIXEL2_FACTOR
+from flextrack.formats import sequence as sequence_io
+from flextrack.runners import session
+from flextrack.runners.backends import ORACLE_BACKENDS as ORACLES
+from flextrack.runners.results import format_table
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("sequence", type=Path, metavar="SEQ_DIR", help="a sequence folder (flextrack simulate, "
+                        "flextrack convert-euroc)")
+    parser.add_argument("--out", type=Path, required=True, help="folder for frames.csv, summary.json, TUM files, plots")
+    parser.add_argument("--backend", default="gt", help="estimator: gt or noisy (oracles served from the sequence's "
+                        "ground truth), or a name from --config (e.g. pvnet)")
+    parser.add_argument("--config", type=Path, help="estimator config (TOML) for the embedded server instead of the "
+                        "oracles; its gt_oracle estimators are given this sequence")
+    parser.add_argument("--server", help="HOST:PORT of a running server to use instead of an embedded one")
+    parser.add_argument("--live", action="store_true", help="run in real time through the sleeping interceptor")
+    parser.add_argument("--speed", type=float, default=1.0, help="with --live: play the sequence this much faster")
+    parser.add_argument("--in-process", action="store_true", help="replay without gRPC (same results)")
+    parser.add_argument("--fps", type=float, help="use the sequence's frames nearest to this rate (None: all of them)")
+    parser.add_argument("--preset", choices=("paper", "ours", "vision"), default="paper",
+                        help="tracker options (client_sdk.options.preset): paper, ours (noisy backends), vision "
+                        "(backends whose orientation is off by degrees, e.g. pvnet)")
+    parser.add_argument("--set", action="append", default=[], metavar="OPTION=VALUE",
+                        help="override one TrackerOptions field of the preset, e.g. --set gravity_follow=0.5 "
+                        "(repeatable; numbers and true/false)")
+    parser.add_argument("--no-bscm", action="store_true", help="ablation: no bias self-correction")
+    parser.add_argument("--no-pia", action="store_true", help="ablation: no pose inspection")
+    parser.add_argument("--imu-only", action="store_true", help="ablation: no backend after initialisation")
+    parser.add_argument("--integrator", choices=("paper", "midpoint"), default="paper")
+    parser.add_argument("--network", choices=("paper", "real-size", "none"), default="paper",
+                        help="paper: 100 kB a request; real-size: the request's serialized size; none: no latency")
+    parser.add_argument("--slowdown", type=float, default=PIXEL2_FACTOR, help="device slowdown (1 = none)")
+    parser.add_argument("--backend-ms", type=float, default=0.0, help="modelled backend compute time (replay)")
+    parser.add_argument("--seed", type=int, default=0, help="network and Noisy-backend seed")
+    parser.add_argument("--frames", action="store_true", help="send the rendered frames (rendered on demand into the "
+                        "folder's rgb/); on by default for estimators other than the gt/noisy oracles")
+    parser.add_argument("--no-plots", action="store_true")
+
+
+def network_options(kind: str, seed: int) -> NetworkOptions:
+    if kind == "none":
+        return replace(NetworkOptions.zero(), seed=seed)
+    return NetworkOptions(seed=seed, fixed_payload_bytes=None if kind == "real-size" else NetworkOptions().fixed_payload_bytes)
+
+
+def overrides(pairs: list[str]) -> dict:
+    """["gravity_follow=0.5", "pia=false"] -> {"gravity_follow": 0.5, "pia": False}; ValueError on a bad one."""
+    known = {f.name for f in fields(TrackerOptions)}
+    out = {}
+    for pair in pairs:
+        name, sep, value = pair.partition("=")
+        if not sep or name not in known:
+            raise ValueError(f"--set {pair!r}: expected OPTION=VALUE with OPTION one of {sorted(known)}")
+        if value.lower() in ("true", "false"):
+            out[name] = value.lower() == "true"
+        else:
+            try:
+                out[name] = float(value)
+            except ValueError:
+                raise ValueError(f"--set {pair!r}: {value!r} is not a number or true/false") from None
+    return out
+
+
+def tracker_options(args) -> TrackerOptions:
+    flags = replace(preset(args.preset), bscm=not args.no_bscm, pia=not args.no_pia,
+                    backend_after_init=not args.imu_only, integrator=args.integrator)
+    return replace(flags, **overrides(args.set))
+
+
+def run(args) -> int:
+    try:
+        seq = sequence_io.load(args.sequence)
+        if args.fps:
+            seq = session.at_fps(seq, args.fps)
+        spec = session.RunSpec(
+            backend=args.backend, network=network_options(args.network, args.seed), slowdown=args.slowdown,
+            backend_compute_ms=args.backend_ms, seed=args.seed, live=args.live, speed=args.speed,
+            in_process=args.in_process, config=args.config, server=args.server,
+            frames=args.frames or args.backend not in ORACLES)
+        progress = session.print_progress if args.live and sys.stderr.isatty() else None
+        record = session.track(seq, tracker_options(args), spec, progress=progress)
+    except (FileNotFoundError, ValueError, ConnectionError, RuntimeError) as exc:
+        print(f"flextrack track: {exc}", file=sys.stderr)
+        return 2
+    except KeyError as exc:
+        print(f"flextrack track: {args.sequence}: rig.yaml lacks the field {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("\nflextrack track: interrupted", file=sys.stderr)
+        return 130
+    name = f"{seq.name}_{args.backend}"
+    if record.requests and not record.responses:
+        print(f"flextrack track: the backend answered none of {record.requests} requests with a pose "
+              f"(is '{args.backend}' an estimator of that server, and does it know sequence '{seq.name}'?)",
+              file=sys.stderr)
+        return 1
+    record.write(args.out, name)
+    if not args.no_plots:
+        session.write_plots(record, args.out, name)
+    print(format_table([(name, record.summarize())]))
+    print(f"wrote {args.out}/{name}_*")
+    return 0
