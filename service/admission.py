@@ -6,7 +6,8 @@ once and cheaply, and the frames let in keep a short wait. A device treats a ref
 frame: it keeps tracking on its IMU and sends the next frame.
 
 The bound counts frames of one estimator that were let in and not yet answered (waiting for a
-worker thread or running). Past it:
+worker thread or running; a cancelled call keeps its place until its worker thread is done with
+it, since a thread cannot be stopped, and is counted as CANCELLED). Past it:
 - `Estimate` fails at once with RESOURCE_EXHAUSTED;
 - `Track` answers that frame at once with status UNAVAILABLE (the stream goes on; a bad frame never
   ends it).
@@ -118,6 +119,9 @@ class AdmissionInterceptor(grpc.aio.ServerInterceptor):
                 response = await behaviour(request, context)
                 code = pb.EstimateResponse.Status.Name(response.status)
                 return response
+            except asyncio.CancelledError:  # the client cancelled, or the deadline passed; the work has ended
+                code = _cancelled_code(context)
+                raise
             except Exception:
                 status = context.code()  # set by the servicer's abort
                 code = status.name if isinstance(status, grpc.StatusCode) else "INTERNAL"
@@ -170,6 +174,9 @@ class AdmissionInterceptor(grpc.aio.ServerInterceptor):
                     admitted.put_nowait(request)
                     try:
                         response = await answers.__anext__()
+                    except asyncio.CancelledError:  # the stream was cancelled with this frame in work (now ended)
+                        self._observe("Track", estimator, _cancelled_code(context), started)
+                        raise
                     finally:
                         self._set_depth(estimator, -1)
                     self._observe("Track", estimator, pb.EstimateResponse.Status.Name(response.status), started)
@@ -184,6 +191,12 @@ class AdmissionInterceptor(grpc.aio.ServerInterceptor):
 
 
 UNREADABLE = "the request bytes are not a valid flextrack.v1 request message"
+
+
+def _cancelled_code(context) -> str:
+    """How a call that was cancelled under its handler is counted: its deadline passed, or the client left."""
+    remaining = context.time_remaining()
+    return "DEADLINE_EXCEEDED" if remaining is not None and remaining <= 0 else "CANCELLED"
 
 
 async def _parse_or_abort(parse, raw, context):

@@ -4,23 +4,35 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import ipaddress
 import sys
 from pathlib import Path
 
-DEFAULT_CONFIG = Path(__file__).with_name("default_config.toml")
+from flextrack.assets import default_config_path
+
+DEFAULT_CONFIG = default_config_path()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = (
         "Serve flextrack.v1.PoseEstimation (Estimate, Track, ListEstimators) with gRPC health checking and server "
-        "reflection. Logs are JSON lines on stderr. SIGTERM/SIGINT stop it gracefully (exit 0).")
+        "reflection. Logs are JSON lines on stderr. SIGTERM drains (health NOT_SERVING for --drain-s while still "
+        "serving) then stops gracefully (exit 0); SIGINT stops without the drain.")
     parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG,
                         help="TOML file with [server], [objects.<id>] and [[estimators]] (docs/service.md)")
-    parser.add_argument("--host", default="0.0.0.0", help="address to listen on")
+    parser.add_argument("--host", default="127.0.0.1",
+                        help="address to listen on: loopback by default; any other address (0.0.0.0 for all) needs "
+                             "TLS (--tls-cert) or tokens (--token-file), or --insecure-public")
+    parser.add_argument("--insecure-public", action="store_true",
+                        help="allow listening on a non-loopback --host without TLS or tokens: anyone who reaches the "
+                             "port can call the service (behind a private network or a mesh that authenticates)")
     parser.add_argument("--port", type=int, default=50051, help="port to listen on (0 = any free port)")
     parser.add_argument("--max-message-mb", type=float, default=8.0, help="largest request/response in MiB")
     parser.add_argument("--grace-s", type=float, default=5.0,
                         help="on SIGTERM/SIGINT, seconds in-flight calls get to finish")
+    parser.add_argument("--drain-s", type=float, default=5.0,
+                        help="on SIGTERM, seconds health says NOT_SERVING while calls are still served, before the "
+                             "socket closes (readiness probes fail first; a second signal ends it)")
     parser.add_argument("--workers", type=int, default=4, help="threads that run estimator calls")
     parser.add_argument("--gil-switch-ms", type=float, default=0.5,
                         help="the longest a thread holds Python's GIL while others wait for it (Python's default is "
@@ -65,9 +77,31 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"flextrack serve: {exc}", file=sys.stderr)
         return 2
+    if not is_loopback(args.host) and not hardening.authenticates and not args.insecure_public:
+        print(f"flextrack serve: refusing to listen on {args.host} without TLS or tokens; give --tls-cert/--tls-key or "
+              f"--token-file, or --insecure-public to expose it unauthenticated", file=sys.stderr)
+        return 2
+    if not args.drain_s >= 0:
+        print(f"flextrack serve: --drain-s must be >= 0, got {args.drain_s}", file=sys.stderr)
+        return 2
     if not args.gil_switch_ms > 0:
         print(f"flextrack serve: --gil-switch-ms must be > 0, got {args.gil_switch_ms}", file=sys.stderr)
         return 2
     sys.setswitchinterval(args.gil_switch_ms / 1e3)  # this process is the server's alone
-    return asyncio.run(server.serve(lambda: EstimatorRegistry.from_config(args.config), args.host, args.port,
-                                    args.max_message_mb, args.grace_s, args.workers, hardening=hardening))
+    try:
+        return asyncio.run(server.serve(lambda: EstimatorRegistry.from_config(args.config), args.host, args.port,
+                                        args.max_message_mb, args.grace_s, args.workers, hardening=hardening,
+                                        drain_s=args.drain_s))
+    except OSError as exc:  # the port is taken (PortInUse), or the metrics port is: one line, no trace
+        print(f"flextrack serve: {exc}", file=sys.stderr)
+        return 1
+
+
+def is_loopback(host: str) -> bool:
+    """Whether `host` is a loopback address (127.0.0.0/8, ::1, localhost): reachable from this machine only."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False  # a host name: it may resolve to anything

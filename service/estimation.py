@@ -14,6 +14,7 @@ from estimators.registry import EstimatorRegistry
 from flextrack import wire
 from flextrack.v1 import pose_estimation_pb2 as pb
 from service import request_decoding
+from service.limits import RequestLimits, clip_message, echo
 
 log = logging.getLogger("flextrack.service")
 
@@ -27,8 +28,9 @@ INTERNAL_MESSAGE = "internal error in the estimator (details are in the server l
 
 
 class EstimationService:
-    def __init__(self, registry: EstimatorRegistry):
+    def __init__(self, registry: EstimatorRegistry, limits: RequestLimits | None = None):
         self.registry = registry
+        self.limits = limits or RequestLimits()  # string lengths, keypoints, image pixels (service.limits)
 
     def list_estimators(self) -> pb.ListEstimatorsResponse:
         return pb.ListEstimatorsResponse(estimators=[
@@ -45,6 +47,7 @@ class EstimationService:
 
     def estimate(self, request: pb.EstimateRequest) -> pb.EstimateResponse:
         start = time.perf_counter()
+        self.limits.check(request)  # before anything reads the strings or the image
         estimator = self.registry.get(request.estimator)
         camera = request_decoding.decode_camera(request.intrinsics)
         keypoints = request_decoding.decode_keypoints(request.keypoints)
@@ -78,9 +81,9 @@ class EstimationService:
         try:
             return self.estimate(request)
         except EstimatorError as exc:  # unknown estimator/object/sequence or bad input: the client's to fix
-            status, message = pb.EstimateResponse.INVALID_INPUT, str(exc)
+            status, message = pb.EstimateResponse.INVALID_INPUT, clip_message(str(exc))
         except Exception:
-            log.exception("estimator failed", extra={"frame_id": request.frame_id, "estimator": request.estimator})
+            log.exception("estimator failed", extra={"frame_id": request.frame_id, "estimator": echo(request.estimator)})
             status, message = pb.EstimateResponse.INTERNAL, INTERNAL_MESSAGE
         return pb.EstimateResponse(frame_id=request.frame_id, capture_time_ns=request.capture_time_ns,
                                    status=status, message=message)

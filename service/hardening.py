@@ -20,7 +20,8 @@ from estimators.registry import EstimatorRegistry
 from service import security
 from service.admission import AdmissionInterceptor
 from service.batching import with_batching
-from service.metrics import ServiceMetrics
+from service.limits import RequestLimits
+from service.metrics import UNKNOWN_ESTIMATOR, ServiceMetrics
 
 log = logging.getLogger("flextrack.service")
 
@@ -47,6 +48,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--batch-delay-ms", type=float, default=2.0,
                        help="dynamic batching: longest a frame waits for others to join its batch")
     group.add_argument("--metrics-port", type=int, default=0, help="serve Prometheus /metrics on this port (0 = off)")
+    group.add_argument("--metrics-host", default="127.0.0.1",
+                       help="address /metrics listens on: loopback by default; 0.0.0.0 for a scraper on another host "
+                            "(plain HTTP, no token: keep it on a private network, docs/operations.md)")
+    limits = parser.add_argument_group("request limits (checked before any work; docs/operations.md)")
+    limits.add_argument("--max-image-pixels", type=int, default=RequestLimits.max_image_pixels,
+                        help="largest image (width x height, from the JPEG/PNG header, before decoding) a request may "
+                             "carry; larger ones get INVALID_ARGUMENT")
+    limits.add_argument("--max-name-chars", type=int, default=RequestLimits.max_name_chars,
+                        help="longest estimator, object_id, sequence and session_id a request may carry")
+    limits.add_argument("--max-keypoints", type=int, default=RequestLimits.max_keypoints,
+                        help="most keypoints a request may carry")
 
 
 @dataclass
@@ -61,7 +73,8 @@ class Hardening:
     max_batch: int = 1
     batch_delay_ms: float = 2.0
     metrics_port: int = 0
-    metrics_host: str = "0.0.0.0"
+    metrics_host: str = "127.0.0.1"
+    limits: RequestLimits = field(default_factory=RequestLimits)
     metrics: ServiceMetrics = field(default_factory=ServiceMetrics)
     admission: AdmissionInterceptor | None = None
 
@@ -79,14 +92,21 @@ class Hardening:
     def from_args(cls, args: argparse.Namespace) -> Hardening:
         """Read the flags of add_arguments; files are read now, so a bad path fails before serving."""
         tokens = security.load_tokens(args.token_file) if args.token_file else []
+        limits = RequestLimits(args.max_name_chars, args.max_keypoints, args.max_image_pixels)
         hardening = cls(args.tls_cert, args.tls_key, args.client_ca, tokens, args.max_queue, args.max_streams,
-                        args.retry_pushback_ms, args.max_batch, args.batch_delay_ms, args.metrics_port)
+                        args.retry_pushback_ms, args.max_batch, args.batch_delay_ms, args.metrics_port,
+                        args.metrics_host, limits)
         hardening.credentials()  # reads and checks the PEM files
         return hardening
 
     def interceptors(self) -> list[grpc.aio.ServerInterceptor]:
         """Authentication first (a refused call costs nothing more), then admission and metrics."""
         return ([security.BearerTokenInterceptor(self.tokens)] if self.tokens else []) + [self.admission]
+
+    @property
+    def authenticates(self) -> bool:
+        """Whether a caller must prove something (TLS or a token) before it is served."""
+        return self.tls_cert is not None or bool(self.tokens)
 
     def credentials(self) -> grpc.ServerCredentials | None:
         if self.tls_cert is None:
@@ -103,14 +123,20 @@ class Hardening:
         if batched:
             log.info("dynamic batching", extra={"estimators": batched, "max_batch": self.max_batch,
                                                 "batch_delay_ms": self.batch_delay_ms})
-        default = registry.default or ""
-        self.admission.resolve = lambda name: name or default
+        # Metrics labels and queue depths are keyed by this name: a registered one, or one shared label for every
+        # name the registry does not know (a client's raw strings would grow the metrics page without bound).
+        default, known = registry.default or "", frozenset(registry.names())
+        self.admission.resolve = lambda name: (name or default) if (name or default) in known else UNKNOWN_ESTIMATOR
         return registry
 
     def start_metrics(self):
         """Start /metrics when a port is set; returns the HTTP server (or None)."""
         if not self.metrics_port:
             return None
-        http_server, _ = self.metrics.serve_http(self.metrics_port, self.metrics_host)
+        try:
+            http_server, _ = self.metrics.serve_http(self.metrics_port, self.metrics_host)
+        except OSError as exc:
+            raise OSError(f"cannot serve /metrics on {self.metrics_host}:{self.metrics_port}: "
+                          f"{exc.strerror or exc}") from None
         log.info("metrics", extra={"address": f"{self.metrics_host}:{self.metrics_port}", "path": "/metrics"})
         return http_server

@@ -10,12 +10,23 @@
 - `flextrack_batch_size{estimator}`: frames per call of a batching estimator.
 
 Each `ServiceMetrics` has its own CollectorRegistry, so several servers (tests, replicas in one
-process) do not collide; `serve_http` exposes it on /metrics.
+process) do not collide; `serve_http` exposes it on /metrics (only there: any other path is 404)
+on the address the operator gives, loopback by default.
+
+Labels are bounded: the `estimator` label is a registered name, "-" for a refused stream or
+`UNKNOWN_ESTIMATOR` for any name the registry does not know (the admission interceptor resolves
+names so), never the client's raw string, so that unknown names cannot grow the page.
 """
 
 from __future__ import annotations
 
-from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, start_http_server
+import threading
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+
+UNKNOWN_ESTIMATOR = "(unknown)"  # the estimator label of requests for names the registry does not know
+METRICS_PATH = "/metrics"
 
 LATENCY_BUCKETS_S = (0.001, 0.0025, 0.005, 0.01, 0.02, 0.033, 0.05, 0.075, 0.1, 0.15, 0.25, 0.5, 1.0, 2.5)
 BATCH_BUCKETS = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 64)
@@ -70,6 +81,27 @@ class ServiceMetrics:
                 total += sample.value
         return total
 
-    def serve_http(self, port: int, host: str = "0.0.0.0"):
-        """Expose /metrics on host:port in a daemon thread; returns (http server, thread)."""
-        return start_http_server(port, addr=host, registry=self.registry)
+    def serve_http(self, port: int, host: str = "127.0.0.1"):
+        """Expose /metrics (and nothing else) on host:port in a daemon thread; returns (http server, thread)."""
+        registry = self.registry
+
+        class Handler(BaseHTTPRequestHandler):
+            def do_GET(self) -> None:  # http.server calls it by this name
+                if self.path.split("?", 1)[0] != METRICS_PATH:
+                    self.send_error(404, "only /metrics is served here")
+                    return
+                body = generate_latest(registry)
+                self.send_response(200)
+                self.send_header("Content-Type", CONTENT_TYPE_LATEST)
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+
+            def log_message(self, *args) -> None:  # no access lines on stderr: the log is JSON lines
+                pass
+
+        server = ThreadingHTTPServer((host, port), Handler)
+        server.daemon_threads = True
+        thread = threading.Thread(target=server.serve_forever, name="metrics-http", daemon=True)
+        thread.start()
+        return server, thread

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import io
 import math
 
-import cv2
 import numpy as np
+from PIL import Image, UnidentifiedImageError
 
 from estimators.base import InvalidInput
 from flextrack import wire
@@ -144,6 +145,22 @@ def check_image(image: pb.Image, camera: PinholeCamera | None) -> None:
         _check(image, data, camera)
 
 
+def _decode_rgb(data: bytes, fmt: str) -> np.ndarray:
+    """HxWx3 uint8 RGB from JPEG/PNG bytes, by Pillow: OpenCV's libjpeg and libpng print their warnings about
+    corrupt data straight to stderr, which broke the server's JSON-lines log; Pillow reports them as exceptions
+    and prints nothing. Its JPEG pixels equal OpenCV's (the same libjpeg-turbo decode); 16-bit PNGs are scaled
+    to 8 bits as OpenCV does."""
+    try:
+        with Image.open(io.BytesIO(data), formats=[fmt]) as img:
+            img.load()
+            if img.mode.startswith("I"):  # 16-bit (or 32-bit) grey: the high byte, as OpenCV's IMREAD_COLOR
+                grey = (np.asarray(img).astype(np.uint32) >> 8).clip(0, 255).astype(np.uint8)
+                return np.repeat(grey[..., None], 3, axis=2)
+            return np.array(img.convert("RGB"))
+    except (OSError, SyntaxError, ValueError, UnidentifiedImageError, Image.DecompressionBombError):
+        raise InvalidInput(f"image data could not be decoded as {fmt}") from None
+
+
 def decode_image(image: pb.Image, camera: PinholeCamera | None) -> np.ndarray | None:
     """HxWx3 uint8 RGB (or HxW for RAW_GRAY8), None when the request has no image."""
     data = image.data
@@ -151,12 +168,10 @@ def decode_image(image: pb.Image, camera: PinholeCamera | None) -> np.ndarray | 
         return None
     _check(image, data, camera)
     if image.encoding in _FORMATS:
-        bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise InvalidInput(f"image data could not be decoded as {_FORMATS[image.encoding]}")
-        if bgr.shape[:2] != (image.height, image.width):
-            raise InvalidInput(f"image declared {image.width}x{image.height} but is {bgr.shape[1]}x{bgr.shape[0]}")
-        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        rgb = _decode_rgb(data, _FORMATS[image.encoding])
+        if rgb.shape[:2] != (image.height, image.width):
+            raise InvalidInput(f"image declared {image.width}x{image.height} but is {rgb.shape[1]}x{rgb.shape[0]}")
+        return rgb
     channels = _raw_channels(image, data)
     shape = (image.height, image.width, 3) if channels == 3 else (image.height, image.width)
     return np.frombuffer(data, np.uint8).reshape(shape).copy()

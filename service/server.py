@@ -1,8 +1,11 @@
 """The grpc.aio server: PoseEstimation + health + reflection, run in the foreground or a thread.
 
 `serve` is what `flextrack serve` runs: it starts listening at once with health NOT_SERVING,
-loads the estimators, turns SERVING, and on SIGTERM/SIGINT stops taking calls, lets in-flight
-ones finish within the grace period and returns 0. `BackgroundServer` runs the same server on a
+loads the estimators, turns SERVING, and on SIGTERM turns NOT_SERVING while it keeps serving for
+the drain period (so that an orchestrator's readiness probe fails and traffic moves away before
+the socket closes), then stops taking calls, lets in-flight ones finish within the grace period
+and returns 0. SIGINT, or a second signal, skips the drain. It refuses a port another server
+holds (gRPC would share it through SO_REUSEPORT). `BackgroundServer` runs the same server on a
 free loopback port in a thread of its own, for runners, the demo and tests.
 """
 
@@ -36,6 +39,8 @@ log = logging.getLogger("flextrack.service")
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["PoseEstimation"].full_name
 DEFAULT_MAX_MESSAGE_MB = 8
 DEFAULT_GRACE_S = 5.0
+DEFAULT_DRAIN_S = 5.0
+DEFAULT_HOST = "127.0.0.1"
 DEFAULT_WORKERS = 4
 
 
@@ -54,9 +59,24 @@ class JsonLogFormatter(logging.Formatter):
 
 
 def configure_logging(level: str = "INFO") -> None:
+    """JSON lines on stderr for everything the process says: Python's warnings go through logging, and OpenCV's
+    own log lines are off (images are decoded with Pillow, which prints nothing, service.request_decoding)."""
     handler = logging.StreamHandler()
     handler.setFormatter(JsonLogFormatter())
     logging.basicConfig(level=level.upper(), handlers=[handler], force=True)
+    logging.captureWarnings(True)
+    quiet_native_logs()
+
+
+def quiet_native_logs() -> None:
+    """Keep OpenCV's native log lines ("[ WARN:0@...]") off stderr, where they would break the JSON lines."""
+    import cv2
+
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+
+
+class PortInUse(OSError):
+    """The address is held by another process (or another flextrack server)."""
 
 
 @dataclass
@@ -70,18 +90,25 @@ class RunningServer:
 
     async def set_registry(self, registry: EstimatorRegistry) -> None:
         """Start answering with these estimators; health turns SERVING once they are all ready."""
+        limits = None
         if self.hardening is not None:
             registry = self.hardening.prepare(registry)  # batching wraps the estimators that can batch
-        self.servicer.service = EstimationService(registry)
+            limits = self.hardening.limits
+        self.servicer.service = EstimationService(registry, limits)
         status = health_pb2.HealthCheckResponse.SERVING if registry.ready else health_pb2.HealthCheckResponse.NOT_SERVING
         for name in ("", SERVICE_NAME):
             await self.health.set(name, status)
+
+    async def drain(self) -> None:
+        """Health NOT_SERVING for good (probes fail, load balancers move away); calls are still served."""
+        await self.health.enter_graceful_shutdown()
 
     async def stop(self, grace_s: float) -> None:
         await self.health.enter_graceful_shutdown()
         await self.server.stop(grace_s)
         if self.metrics_http is not None:
             self.metrics_http.shutdown()
+            self.metrics_http.server_close()
 
 
 async def start_server(host: str, port: int, executor: ThreadPoolExecutor,
@@ -89,9 +116,12 @@ async def start_server(host: str, port: int, executor: ThreadPoolExecutor,
                        hardening: Hardening | None = None) -> RunningServer:
     """Listen on host:port (0 = any free port) with health NOT_SERVING and no estimators yet."""
     max_bytes = int(max_message_mb * 1024 * 1024)
+    # grpc.so_reuseport 0: gRPC sets SO_REUSEPORT by default, so a second server on a held port would start
+    # silently and the two would share the connections; without it the bind fails and we say so.
     server = grpc.aio.server(interceptors=hardening.interceptors() if hardening else None,
                              options=[("grpc.max_receive_message_length", max_bytes),
-                                      ("grpc.max_send_message_length", max_bytes)])
+                                      ("grpc.max_send_message_length", max_bytes),
+                                      ("grpc.so_reuseport", 0)])
     servicer = PoseEstimationServicer(executor)
     pb_grpc.add_PoseEstimationServicer_to_server(servicer, server)
     health_servicer = health.aio.HealthServicer()
@@ -100,27 +130,39 @@ async def start_server(host: str, port: int, executor: ThreadPoolExecutor,
     for name in ("", SERVICE_NAME):
         await health_servicer.set(name, health_pb2.HealthCheckResponse.NOT_SERVING)
     credentials = hardening.credentials() if hardening else None
-    bound = (server.add_secure_port(f"{host}:{port}", credentials) if credentials
-             else server.add_insecure_port(f"{host}:{port}"))
+    address = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+    try:
+        bound = (server.add_secure_port(address, credentials) if credentials
+                 else server.add_insecure_port(address))
+    except RuntimeError:  # grpc.aio raises on a failed bind, older versions return 0
+        bound = 0
     if bound == 0:
-        raise OSError(f"cannot listen on {host}:{port}")
+        raise PortInUse(f"cannot listen on {address}: the port is in use (another server holds it) or the address "
+                        f"is not one of this host's")
     await server.start()
     return RunningServer(server, bound, servicer, health_servicer, hardening,
                          hardening.start_metrics() if hardening else None)
 
 
-async def serve(load_registry: Callable[[], EstimatorRegistry], host: str = "0.0.0.0", port: int = 50051,
+async def serve(load_registry: Callable[[], EstimatorRegistry], host: str = DEFAULT_HOST, port: int = 50051,
                 max_message_mb: float = DEFAULT_MAX_MESSAGE_MB, grace_s: float = DEFAULT_GRACE_S,
                 workers: int = DEFAULT_WORKERS, on_serving: Callable[[int], None] | None = None,
-                hardening: Hardening | None = None) -> int:
+                hardening: Hardening | None = None, drain_s: float = DEFAULT_DRAIN_S) -> int:
     """Run until SIGTERM/SIGINT; 0 after a graceful stop, 1 when the estimators fail to load.
 
-    `on_serving(port)` is called once the server is SERVING (the benchmark learns its port so).
+    SIGTERM drains first: health NOT_SERVING for `drain_s` while calls are still served; SIGINT or a
+    second signal stops at once (in-flight calls still get `grace_s`). `on_serving(port)` is called
+    once the server is SERVING (the benchmark learns its port so). Raises PortInUse when it cannot listen.
     """
     loop = asyncio.get_running_loop()
-    stop = asyncio.Event()
+    stop, signals = asyncio.Event(), []
+
+    def on_signal(sig: signal.Signals) -> None:
+        signals.append(sig)
+        stop.set()
+
     for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
+        loop.add_signal_handler(sig, on_signal, sig)
     workers = hardening.workers(workers) if hardening else workers
     with ThreadPoolExecutor(workers, thread_name_prefix="estimator") as executor:
         running = await start_server(host, port, executor, max_message_mb, hardening)
@@ -137,6 +179,14 @@ async def serve(load_registry: Callable[[], EstimatorRegistry], host: str = "0.0
         if on_serving is not None:
             on_serving(running.port)
         await stop.wait()
+        if signals[0] == signal.SIGTERM and drain_s > 0:
+            await running.drain()
+            log.info("draining", extra={"drain_s": drain_s, "health": "NOT_SERVING"})
+            stop.clear()
+            try:  # a second signal ends the drain early
+                await asyncio.wait_for(stop.wait(), drain_s)
+            except TimeoutError:
+                pass
         log.info("shutting down", extra={"grace_s": grace_s})
         await running.stop(grace_s)
     log.info("stopped")
@@ -163,6 +213,7 @@ class BackgroundServer:
         self._stop: asyncio.Event | None = None
         self._thread: threading.Thread | None = None
         self.port = 0
+        self.running: RunningServer | None = None  # the server's parts (servicer, health), once started
 
     @property
     def address(self) -> str:
@@ -179,7 +230,7 @@ class BackgroundServer:
                 self._error = exc
                 self._started.set()
                 return
-            self.port = running.port
+            self.port, self.running = running.port, running
             self._started.set()
             await self._stop.wait()
             await running.stop(self._grace_s)

@@ -86,7 +86,7 @@ def test_metrics_endpoint_serves_counts_latency_and_queue_depth(slow_server):
     finally:
         http_server.shutdown()
     assert 'flextrack_requests_total{code="OK",estimator="slow",method="Track"} 3.0' in text
-    assert 'flextrack_requests_total{code="NOT_FOUND",estimator="nope",method="Estimate"} 1.0' in text
+    assert 'flextrack_requests_total{code="NOT_FOUND",estimator="(unknown)",method="Estimate"} 1.0' in text  # not the raw name
     assert 'flextrack_request_latency_seconds_count{estimator="slow",method="Track"} 3.0' in text
     assert 'flextrack_queue_depth{estimator="slow"} 0.0' in text
 
