@@ -40,3 +40,19 @@ def test_image_is_slim_non_root_and_health_checked():
     assert "EXPOSE 50051" in text
     ignored = (REPO / ".dockerignore").read_text().split()
     assert ".venv" in ignored and ".git" in ignored
+
+
+def test_the_image_says_it_serves_unauthenticated_on_all_interfaces():
+    """`flextrack serve` listens on loopback by default and refuses another address without TLS or tokens unless
+    told --insecure-public: a container's CMD, which must listen on its interface, says it explicitly."""
+    import argparse
+    import json
+
+    from service import cli
+
+    cmd = json.loads(re.search(r"^CMD (\[.*\])$", DOCKERFILE.read_text(), re.MULTILINE).group(1))
+    assert cmd[:2] == ["flextrack", "serve"]
+    parser = argparse.ArgumentParser()
+    cli.add_arguments(parser)
+    args = parser.parse_args(cmd[2:])
+    assert not cli.is_loopback(args.host) and args.insecure_public and not (args.token_file or args.tls_cert)

@@ -71,3 +71,21 @@ def test_container_args_are_flags_the_server_accepts():
     args = _by_kind()["Deployment"]["spec"]["template"]["spec"]["containers"][0]["args"]
     assert args[0] == "serve"
     parser.parse_args(args[1:])  # exits (SystemExit) on an unknown flag
+
+
+def test_public_bind_is_authenticated_and_the_grace_period_covers_drain_and_grace():
+    service_cli = pytest.importorskip("service.cli", reason="service.cli is not there yet")
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    service_cli.add_arguments(parser)
+    pod = _by_kind()["Deployment"]["spec"]["template"]["spec"]
+    args = parser.parse_args(pod["containers"][0]["args"][1:])
+    # `flextrack serve` refuses a non-loopback address without TLS or tokens unless told --insecure-public
+    assert service_cli.is_loopback(args.host) or args.token_file or args.tls_cert or args.insecure_public
+    assert args.token_file and not args.insecure_public  # here: callers carry a token
+    # SIGTERM: NOT_SERVING for --drain-s (readiness must fail within it), then --grace-s for in-flight calls
+    readiness = pod["containers"][0]["readinessProbe"]
+    assert args.drain_s >= readiness["periodSeconds"] * readiness["failureThreshold"]
+    assert pod["terminationGracePeriodSeconds"] >= args.drain_s + args.grace_s
+    assert args.metrics_host == "0.0.0.0"  # Prometheus scrapes the pod's address: said explicitly
