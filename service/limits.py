@@ -43,7 +43,7 @@ class RequestLimits:
         if len(request.sequence) > n:
             raise UnknownSequence(f"unknown sequence {echo(request.sequence)}: names are at most {n} characters")
         if len(request.session_id) > n:
-            raise InvalidInput(f"session_id is {len(request.session_id)} characters; at most {n} are accepted")
+            raise InvalidInput(f"session_id is {len(request.session_id)} characters; at most {n} characters are accepted")
         if len(request.keypoints) > self.max_keypoints:
             raise InvalidInput(f"{len(request.keypoints)} keypoints; at most {self.max_keypoints} are accepted")
         image = request.image

@@ -16,6 +16,7 @@ import gc
 import json
 import logging
 import signal
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -131,6 +132,7 @@ async def start_server(host: str, port: int, executor: ThreadPoolExecutor,
         await health_servicer.set(name, health_pb2.HealthCheckResponse.NOT_SERVING)
     credentials = hardening.credentials() if hardening else None
     address = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+    _probe_bind(host, port, address)  # before gRPC, whose failed bind also prints a native error line
     try:
         bound = (server.add_secure_port(address, credentials) if credentials
                  else server.add_insecure_port(address))
@@ -142,6 +144,24 @@ async def start_server(host: str, port: int, executor: ThreadPoolExecutor,
     await server.start()
     return RunningServer(server, bound, servicer, health_servicer, hardening,
                          hardening.start_metrics() if hardening else None)
+
+
+def _probe_bind(host: str, port: int, address: str) -> None:
+    """Raise PortInUse when host:port cannot be bound (held by another server or program)."""
+    if port == 0:
+        return
+    try:
+        infos = socket.getaddrinfo(host.strip("[]") or None, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except OSError:
+        return  # gRPC says why
+    for family, kind, proto, _, sockaddr in infos:
+        with socket.socket(family, kind, proto) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as gRPC: a TIME_WAIT port is free
+            try:
+                probe.bind(sockaddr)
+            except OSError as exc:
+                raise PortInUse(f"cannot listen on {address}: {exc.strerror or exc} (the port is in use: another "
+                                f"server holds it, or the address is not one of this host's)") from None
 
 
 async def serve(load_registry: Callable[[], EstimatorRegistry], host: str = DEFAULT_HOST, port: int = 50051,
