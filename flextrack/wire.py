@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from flextrack.geometry import se3
+from flextrack.geometry import se3, so3
 from flextrack.v1 import pose_estimation_pb2 as pb
 
 MAX_STD_RAD = np.pi  # a rotation standard deviation above this says nothing: refused as nonsense
@@ -75,3 +75,10 @@ def covariance_from_pb(msg: pb.PoseCovariance, name: str = "covariance") -> np.n
 def diagonal_covariance(std_rot_rad: float, std_trans_m: float) -> np.ndarray:
     """Isotropic per-axis standard deviations as a 6x6 covariance in the wire convention."""
     return np.diag([std_rot_rad ** 2] * 3 + [std_trans_m ** 2] * 3)
+
+
+def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    """The error e = (d_theta, d_t) of T_est in the wire convention: R_true = Exp(d_theta) R_est,
+    t_true = t_est + d_t (camera frame, rad then m); e^T inv(covariance) e is the NEES."""
+    d_theta = so3.log(T_true[:3, :3] @ T_est[:3, :3].T)
+    return np.concatenate([d_theta, T_true[:3, 3] - T_est[:3, 3]])

@@ -1,0 +1,1 @@
+"""Evaluations of the estimators' outputs beyond their pose error (`flextrack evaluate ...`)."""
