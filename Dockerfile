@@ -19,15 +19,15 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     VIRTUAL_ENV=/opt/venv \
     PATH=/opt/venv/bin:$PATH
 
-WORKDIR /app
 COPY --from=wheel /wheels /wheels
+WORKDIR /wheels
 # The built wheel with the backend's extra only; the venv keeps pip off the distribution's own Python
 # (PEP 668 on Debian-based images).
 RUN python3 -m venv /opt/venv \
- && wheel="$(cd /wheels && echo flextrack-*.whl)" \
- && python -m pip install --no-cache-dir "/wheels/${wheel}[server]" \
- && rm -rf /wheels \
+ && python -m pip install --no-cache-dir "/wheels/$(echo flextrack-*.whl)[server]" \
+ && rm /wheels/*.whl \
  && useradd --create-home --uid 10001 --shell /usr/sbin/nologin flextrack
+WORKDIR /app
 
 USER 10001
 EXPOSE 50051

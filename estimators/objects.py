@@ -15,6 +15,7 @@ import numpy as np
 import trimesh
 
 from estimators.base import UnknownObject
+from flextrack.assets import resolve
 from flextrack.formats import bop
 from flextrack.geometry.camera import bbox_corners
 
@@ -113,7 +114,7 @@ class ObjectRegistry:
                                  f"got {sorted(table)}")
             keypoints = table.get("keypoints")
             if isinstance(keypoints, str):
-                keypoints = base_dir / keypoints
-            registry.add(load_object(object_id, base_dir / table["model"], keypoints,
+                keypoints = resolve(keypoints, base_dir)
+            registry.add(load_object(object_id, resolve(table["model"], base_dir), keypoints,
                                      int(table.get("keypoint_count", DEFAULT_KEYPOINT_COUNT))))
         return registry

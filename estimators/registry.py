@@ -15,6 +15,7 @@ from pathlib import Path
 
 from estimators.base import Estimator, UnknownEstimator
 from estimators.objects import ObjectRegistry
+from flextrack.assets import resolve
 
 ENTRY_POINT_GROUP = "flextrack.estimators"
 BUILTIN_KINDS = {
@@ -37,7 +38,8 @@ class EstimatorSpec:
     base_dir: Path = Path(".")  # relative paths in params are relative to this (the config's folder)
 
     def path(self, value: str | Path) -> Path:
-        return self.base_dir / value
+        """A path from the config: relative to its folder, or `package:PKG/REL` inside an installed package."""
+        return resolve(value, self.base_dir)
 
     def check_params(self, known: set[str]) -> None:
         unknown = set(self.params) - known
@@ -118,7 +120,7 @@ class EstimatorRegistry:
                 objects.get(object_id)  # fail at load time, naming the object
             spec = EstimatorSpec(
                 name=entry.get("name", entry["kind"]), kind=entry["kind"], objects=objects, object_ids=object_ids,
-                model=base_dir / entry["model"] if "model" in entry else None,
+                model=resolve(entry["model"], base_dir) if "model" in entry else None,
                 params=dict(entry.get("params", {})), base_dir=base_dir)
             estimators.append(build_estimator(spec))
         return cls(estimators, doc.get("server", {}).get("default_estimator"), objects)

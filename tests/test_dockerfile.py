@@ -1,4 +1,5 @@
-"""The backend image: hadolint-clean, slim base as a build argument, non-root, gRPC health check, no torch."""
+"""The backend image: hadolint-clean, slim base as a build argument, built wheel installed, non-root, gRPC health
+check, no torch."""
 
 import re
 import shutil
@@ -30,8 +31,10 @@ def test_image_is_slim_non_root_and_health_checked():
     text = DOCKERFILE.read_text()
     assert re.search(r"^ARG BASE_IMAGE=python:3\.\d+-slim$", text, re.MULTILINE)
     assert re.search(r"^FROM \$\{BASE_IMAGE\}$", text, re.MULTILINE)
-    install = re.search(r"pip install .*'\.\[(\w+)\]'", text)
+    assert re.search(r"^RUN python3 -m pip wheel .* \.$", text, re.MULTILINE)  # a wheel built from the tree
+    install = re.search(r"pip install [^\n]*\.whl\)?\[(\w+)\]", text)
     assert install and install.group(1) == "server"  # the backend extra: no torch, no simulator
+    assert " -e " not in text and "COPY . /app" not in text  # the wheel, not an editable install of a source tree
     server_extra = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["optional-dependencies"]["server"]
     assert not any(dep.startswith(("torch", "flextrack[")) for dep in server_extra)
     user = re.findall(r"^USER (\S+)$", text, re.MULTILINE)

@@ -9,10 +9,10 @@ import trimesh
 
 from estimators.base import UnknownObject
 from estimators.objects import ObjectRegistry, farthest_point_sample, load_object
+from flextrack import assets
 
-REPO = Path(__file__).resolve().parent.parent
 LMO_CAT = Path("/work/shared/data/lmo_cat/models/obj_000006.ply")
-DEFAULT_MODEL = REPO / "assets/objects/default/models/obj_000001.ply"
+DEFAULT_MODEL = assets.default_object_model()
 
 
 @pytest.fixture

@@ -10,9 +10,8 @@ from estimators.base import UnknownEstimator
 from estimators.gt_oracle import GtOracleEstimator
 from estimators.pnp import PnpEstimator
 from estimators.registry import EstimatorRegistry, known_kinds
+from flextrack import assets
 from flextrack.benchmarks.toy_sequence import write_orbit_sequence
-
-REPO = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture
@@ -86,8 +85,8 @@ def test_a_third_party_kind_is_found_through_its_entry_point(tmp_path, monkeypat
 
 
 def test_the_default_config_loads():
-    if not (REPO / "assets/objects/default/models/obj_000001.ply").exists():
-        pytest.skip("the default object model assets/objects/default is absent")
-    registry = EstimatorRegistry.from_config(REPO / "service/default_config.toml")
+    if not assets.default_object_model().exists():
+        pytest.skip("the default object model flextrack/assets/objects/default is absent")
+    registry = EstimatorRegistry.from_config(assets.default_config_path())
     assert {"gt_oracle", "gt_noisy", "pnp"} <= set(registry.names())
     assert registry.get("gt_noisy").noise_t_m == 0.003

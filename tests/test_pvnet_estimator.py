@@ -14,19 +14,19 @@ from estimators.base import EstimateInput, InvalidInput, Status
 from estimators.contour_refine import ContourRefiner
 from estimators.objects import ObjectRegistry, load_object
 from estimators.pvnet import PvnetEstimator, _unturn
+from flextrack import assets
 from flextrack.geometry import metrics, se3, so3
 from flextrack.geometry.camera import PinholeCamera
-from flextrack.training.cli import DEFAULT_OBJECT
 from flextrack.training.export_onnx import export
 from flextrack.training.pvnet_model import PvnetNet
 
-SHIPPED = Path(__file__).resolve().parents[1] / "models" / "pvnet_default" / "pvnet.onnx"
+SHIPPED = assets.pvnet_model_path()
 CAMERA = PinholeCamera.linemod()
 
 
 @pytest.fixture(scope="module")
 def registry():
-    return ObjectRegistry([load_object("default", DEFAULT_OBJECT)])
+    return ObjectRegistry([load_object("default", assets.default_object_model())])
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +74,7 @@ def rendered():
     from flextrack.simulator.render import Renderer
     from flextrack.simulator.scene import make_scene
 
-    verts = load_object("default", DEFAULT_OBJECT).vertices
+    verts = load_object("default", assets.default_object_model()).vertices
     T_WO = se3.make(np.eye(3), [0, 0, -verts[:, 2].min()])
     poses = []
     for dist, azimuth in ((0.7, 30.0), (1.2, 200.0)):  # camera 40 degrees above the table, looking at the object
@@ -84,7 +84,7 @@ def rendered():
         x /= np.linalg.norm(x)
         T_WC = se3.make(np.stack([x, np.cross(z, x), z], axis=1), T_WO[:3, 3] - dist * z)
         poses.append(se3.inverse(T_WC) @ T_WO)
-    with Renderer(CAMERA, DEFAULT_OBJECT, scene=make_scene(5), T_WO=T_WO) as renderer:
+    with Renderer(CAMERA, assets.default_object_model(), scene=make_scene(5), T_WO=T_WO) as renderer:
         return [(renderer.render(T).rgb, T) for T in poses]
 
 
@@ -135,7 +135,7 @@ def test_config_builds_a_pvnet_estimator(blind_model):
     from estimators.registry import EstimatorRegistry
 
     def doc(**entry):
-        return {"objects": {"default": {"model": str(DEFAULT_OBJECT)}},
+        return {"objects": {"default": {"model": str(assets.default_object_model())}},
                 "estimators": [{"name": "pvnet", "kind": "pvnet", "objects": ["default"], **entry}]}
 
     registry = EstimatorRegistry.from_dict(doc(model=str(blind_model), params={"zoom": False}), Path("."))

@@ -1,7 +1,6 @@
 """`flextrack train pvnet-eval`: rendered frames (rolled ones too) through the estimator, scored and drawn."""
 
 import json
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -9,17 +8,17 @@ import pytest
 
 pytest.importorskip("onnxruntime")
 
+from flextrack import assets
 from flextrack.formats import bop
 from flextrack.geometry import se3, so3
-from flextrack.training.cli import DEFAULT_OBJECT
 from flextrack.training.evaluate import bop_frames, evaluate, rendered_frames
 
-SHIPPED = Path(__file__).resolve().parents[1] / "models" / "pvnet_default" / "pvnet.onnx"
+SHIPPED = assets.pvnet_model_path()
 
 
 def test_a_rolled_camera_sees_the_same_viewpoints_turned():
-    upright = list(rendered_frames(DEFAULT_OBJECT, 2, seed=11, scenes=1))
-    rolled = list(rendered_frames(DEFAULT_OBJECT, 2, seed=11, scenes=1, roll_deg=90.0))
+    upright = list(rendered_frames(assets.default_object_model(), 2, seed=11, scenes=1))
+    rolled = list(rendered_frames(assets.default_object_model(), 2, seed=11, scenes=1, roll_deg=90.0))
     turn = se3.make(so3.exp(np.array([0.0, 0.0, np.pi / 2])), np.zeros(3))
     for (_, rgb, _, T, _), (_, rgb_rolled, _, T_rolled, _) in zip(upright, rolled):
         assert np.allclose(T_rolled, turn @ T)
@@ -28,8 +27,8 @@ def test_a_rolled_camera_sees_the_same_viewpoints_turned():
 
 @pytest.mark.skipif(not SHIPPED.is_file(), reason=f"no shipped model at {SHIPPED}")
 def test_evaluation_scores_every_frame_and_writes_its_results(tmp_path):
-    frames = rendered_frames(DEFAULT_OBJECT, 3, seed=20261122, scenes=1, roll_deg=180.0)
-    summary = evaluate(SHIPPED, DEFAULT_OBJECT, frames, tmp_path, sheet=3, rotations=4)
+    frames = rendered_frames(assets.default_object_model(), 3, seed=20261122, scenes=1, roll_deg=180.0)
+    summary = evaluate(SHIPPED, assets.default_object_model(), frames, tmp_path, sheet=3, rotations=4)
     saved = json.loads((tmp_path / "results.json").read_text())
     assert saved["rotations"] == 4 and len(saved["frames"]) == 3
     assert summary["rendered"]["frames"] == 3 and 0.0 <= summary["rendered"]["proj_below_5px"] <= 1.0

@@ -9,15 +9,15 @@ pytest.importorskip("torch")
 pytest.importorskip("pyrender")
 
 from estimators.objects import load_object
+from flextrack import assets
 from flextrack.geometry import se3
 from flextrack.geometry.camera import PinholeCamera
-from flextrack.training.cli import DEFAULT_OBJECT
 from flextrack.training.pvnet_data import PatchSampler, RenderedViews, full_to_input, render_views, targets
 
 
 @pytest.fixture(scope="module")
 def views():
-    obj = load_object("default", DEFAULT_OBJECT)
+    obj = load_object("default", assets.default_object_model())
     return obj, render_views(obj.model_path, obj.keypoints, obj.diameter_m, n=4, seed=1)
 
 

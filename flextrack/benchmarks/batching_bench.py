@@ -20,10 +20,10 @@ import time
 import urllib.request
 from pathlib import Path
 
+from flextrack import assets
 from flextrack.loadtest import report, runner, servers, workload
 
-REPO = Path(__file__).resolve().parents[2]
-DEFAULT_MODEL = REPO / "models" / "pvnet_default" / "pvnet.onnx"
+DEFAULT_MODEL = assets.pvnet_model_path()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -58,22 +58,21 @@ def _mean_batch(metrics_address: str) -> float:
 
 def run(args: argparse.Namespace) -> int:
     from estimators.objects import load_object
-    from flextrack.training.cli import DEFAULT_OBJECT
     from flextrack.training.evaluate import rendered_frames
 
     args.out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         model = args.model
         if args.untrained:
-            keypoints = load_object("default", DEFAULT_OBJECT).keypoints
+            keypoints = load_object("default", assets.default_object_model()).keypoints
             model = _untrained_model(Path(tmp) / "pvnet_untrained.onnx", keypoints)
         elif not model.is_file():
             print(f"bench batching: model {model} not found (train one with `flextrack train pvnet`, or --untrained)")
             return 2
         config = Path(tmp) / "batching.toml"
-        config.write_text(f'[objects.default]\nmodel = "{DEFAULT_OBJECT}"\n\n[[estimators]]\nname = "pvnet"\n'
+        config.write_text(f'[objects.default]\nmodel = "{assets.default_object_model()}"\n\n[[estimators]]\nname = "pvnet"\n'
                           f'kind = "pvnet"\nobjects = ["default"]\nmodel = "{model}"\n')
-        frames = list(rendered_frames(DEFAULT_OBJECT, args.frames, seed=7, scenes=1))
+        frames = list(rendered_frames(assets.default_object_model(), args.frames, seed=7, scenes=1))
         work = workload.from_images([f[1] for f in frames], frames[0][2], args.payload_kb, "pvnet", "default")
         rows = []
         for label, extra in (("off", ["--max-batch", "1"]),

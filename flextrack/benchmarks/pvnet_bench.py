@@ -13,8 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[2]
-DEFAULT_MODEL = REPO / "models" / "pvnet_default" / "pvnet.onnx"
+from flextrack import assets
+
+DEFAULT_MODEL = assets.pvnet_model_path()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -29,12 +30,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _frames(n: int):
     from flextrack.geometry.camera import PinholeCamera
     from flextrack.runners.payload import frame_jpeg
-    from flextrack.training.cli import DEFAULT_OBJECT
     from flextrack.training.evaluate import rendered_frames
     from flextrack.v1 import pose_estimation_pb2 as pb
 
     out = []
-    for _, rgb, camera, _, _ in rendered_frames(DEFAULT_OBJECT, n, seed=7, scenes=1):
+    for _, rgb, camera, _, _ in rendered_frames(assets.default_object_model(), n, seed=7, scenes=1):
         out.append(pb.Image(encoding=pb.Image.JPEG, data=frame_jpeg(rgb, 90), width=rgb.shape[1], height=rgb.shape[0]))
     return out, PinholeCamera.linemod()
 
@@ -43,13 +43,12 @@ def run(args) -> int:
     from estimators.base import EstimateInput
     from estimators.objects import ObjectRegistry, load_object
     from estimators.pvnet import PvnetEstimator
-    from flextrack.training.cli import DEFAULT_OBJECT
     from service.request_decoding import decode_image
 
     if not args.model.is_file():
         print(f"bench pvnet: model {args.model} not found (train one with `flextrack train pvnet`)")
         return 2
-    registry = ObjectRegistry([load_object("default", DEFAULT_OBJECT)])
+    registry = ObjectRegistry([load_object("default", assets.default_object_model())])
     estimator = PvnetEstimator(registry, args.model, device=args.device, threads=args.threads)
     images, camera = _frames(args.frames)
     print(f"pvnet bench: {args.model} on {estimator.providers[0]}, {len(images)} rendered 640x480 JPEG frames")

@@ -19,11 +19,12 @@ from client_sdk.network_model import NetworkOptions
 from client_sdk.options import preset
 from estimators.gt_oracle import GtOracleEstimator
 from estimators.registry import EstimatorRegistry
+from flextrack import assets
 from flextrack.experiments import common, paper
 from flextrack.runners import session
 
 HEADER = ["motion", "level", "fps", "backend", "seed", "pos_mm", "ori_deg", "proj_px", "fine_pct", "requests"]
-DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "service" / "default_config.toml"
+DEFAULT_CONFIG = assets.default_config_path()
 ORACLE = "gt_oracle"
 LIMIT_PX = 5.0  # the goal for a vision backend on these cells (issue 5)
 

@@ -24,13 +24,14 @@ from matplotlib.colors import hsv_to_rgb
 from scipy.spatial import ConvexHull
 from scipy.spatial.distance import pdist
 
+from flextrack import assets
 from flextrack.formats import bop
 
 OBJECT_ID = "default"
 BOP_OBJ_ID = 1
 DIAMETER_MM = 150.0
 MAX_EDGE_MM = 5.0  # vertex spacing: dense enough that vertex colours read as texture
-DEFAULT_DIR = Path(__file__).resolve().parents[2] / "assets" / "objects" / "default" / "models"
+DEFAULT_DIR = assets.default_object_dir()  # where `write` puts the models folder by default
 _EPS = 1e-3  # mm: a vertex on a part's boundary is not inside it
 
 

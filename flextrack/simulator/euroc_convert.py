@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flextrack import assets
 from flextrack.formats import euroc, kalibr
 from flextrack.formats.sequence import Sequence
 from flextrack.geometry import se3, so3
@@ -117,7 +118,7 @@ def convert_euroc(euroc_dir: str | Path, out_dir: str | Path, *, fps: float | No
     T_WB = np.stack([se3.interpolate_at(gt_t, gt_poses, int(t)) for t in frame_t])
     T_WC = T_WB @ cam.T_BS
 
-    source = Path(object_path) if object_path is not None else default_object.DEFAULT_DIR / "obj_000001.ply"
+    source = Path(object_path) if object_path is not None else assets.default_object_model()
     if object_id is None:
         object_id = default_object.OBJECT_ID if object_path is None else source.stem
     bop_obj_id = default_object.BOP_OBJ_ID if object_path is None else bop_obj_id_of(source)

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flextrack import assets
 from flextrack.formats.euroc import GroundTruth
 from flextrack.formats.sequence import Sequence
 from flextrack.geometry import se3, so3
@@ -49,7 +50,7 @@ def generate_sequence(motion: str, level: str, out_dir: str | Path, *, duration_
     if still_s < 1.0 or not 1.0 <= first_frame_s <= still_s + duration_s:
         raise ValueError("the IMU must start >= 1 s before the first frame, with >= 1 s still")
     prof = imu.profile(imu_profile, imu_rate)
-    source = Path(object_path) if object_path is not None else default_object.DEFAULT_DIR / "obj_000001.ply"
+    source = Path(object_path) if object_path is not None else assets.default_object_model()
     if object_id is None:
         object_id = default_object.OBJECT_ID if object_path is None else source.stem
     bop_obj_id = default_object.BOP_OBJ_ID if object_path is None else bop_obj_id_of(source)

@@ -93,9 +93,10 @@ class Renderer:
     def __init__(self, camera: PinholeCamera | None = None, model_path: str | Path | None = None, *,
                  scene: SceneStyle | None = None, T_WO: np.ndarray | None = None,
                  znear: float = 0.02, zfar: float = 20.0):
-        from flextrack.simulator.default_object import DEFAULT_DIR
+        from flextrack import assets
+
         self.camera = camera or PinholeCamera.linemod()
-        self.model_path = Path(model_path) if model_path is not None else DEFAULT_DIR / "obj_000001.ply"
+        self.model_path = Path(model_path) if model_path is not None else assets.default_object_model()
         if scene is not None and T_WO is None:
             raise ValueError("scene mode needs the object's world pose T_WO")
         self.T_WO = np.eye(4) if T_WO is None else np.asarray(T_WO, float)

@@ -12,16 +12,10 @@ import sys
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[2]
-DEFAULT_OBJECT = REPO / "assets" / "objects" / "default" / "models" / "obj_000001.ply"
+from flextrack import assets
 
-
-def resolve_object(spec: str) -> Path:
-    """'default' -> the project's default object; otherwise a .ply path (BOP, mm)."""
-    path = DEFAULT_OBJECT if spec == "default" else Path(spec)
-    if not path.is_file():
-        raise FileNotFoundError(f"object model {path} not found (give 'default' or a BOP .ply in mm)")
-    return path
+# The default object's model (its home is flextrack.assets; kept here for callers of this name).
+DEFAULT_OBJECT = assets.default_object_model()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -61,7 +55,7 @@ def _train(args) -> int:
     if args.size % 16 or args.size < 32:
         print(f"--size must be a multiple of 16 and >= 32, got {args.size}", file=sys.stderr)
         return 2
-    model_path = resolve_object(args.object)
+    model_path = assets.object_model(args.object)
     obj = load_object(model_path.stem, model_path)
     cfg = TrainConfig(steps=args.steps, batch=args.batch, size=args.size, seed=args.seed, views=args.views,
                       minutes=args.minutes, width=args.width, threads=args.threads,

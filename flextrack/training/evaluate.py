@@ -13,7 +13,7 @@ below 10 % of the diameter (BOP definitions; a frame without a pose counts as a 
 per-frame rows to results.json and draws the estimated pose (green: truth, red: estimate) over
 the frames in a contact sheet.
 
-    python -m flextrack.training.evaluate --model models/pvnet_default/pvnet.onnx --object default --out runs/eval
+    python -m flextrack.training.evaluate --model flextrack/assets/models/pvnet_default/pvnet.onnx --object default --out runs/eval
     python -m flextrack.training.evaluate --model runs/cat/pvnet.onnx --object .../obj_000006.ply \\
         --bop ../shared/data/lmo_cat/test/000002 --obj-id 6 --out runs/eval_cat
 """
@@ -201,10 +201,10 @@ def evaluate(model: Path, object_path: Path, frames, out: Path, zoom: bool = Tru
 
 
 def run(args) -> int:
-    from flextrack.training.cli import resolve_object
+    from flextrack.assets import object_model
 
     try:
-        object_path = resolve_object(args.object)
+        object_path = object_model(args.object)
         if not args.model.is_file():
             raise FileNotFoundError(f"model {args.model} not found")
         if args.bop is not None:
