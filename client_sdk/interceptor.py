@@ -9,6 +9,10 @@ that the draw is a pure function of (seed, frame id, payload size).
 - replay (`live=False`): it sleeps nothing and stamps the delays in `stamps` (frame id ->
   `LinkDelays`, taken with `pop_stamp`) and/or passes them to `on_delay`, for the virtual-time
   runner to apply on its own clock.
+
+What it keeps per frame is bounded: an uplink delay waits for its response (a frame whose stream
+broke never gets one) and a stamp for `pop_stamp`; each table keeps its `MAX_KEPT` newest entries,
+so an hour of frames costs no more memory than a minute.
 """
 
 from __future__ import annotations
@@ -16,11 +20,21 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable, Iterator
+from typing import Any
 
 import grpc
 
 from client_sdk import network_model
 from client_sdk.network_model import LinkDelays, NetworkOptions
+
+MAX_KEPT = 256  # frames a table remembers: far more than a device keeps in flight (one, in the PRM)
+
+
+def _keep(table: dict[int, Any], key: int, value: Any, limit: int = MAX_KEPT) -> None:
+    """table[key] = value, dropping the oldest entries past `limit` (dicts keep insertion order)."""
+    table[key] = value
+    while len(table) > limit:
+        del table[next(iter(table))]
 
 
 class LatencyInterceptor(grpc.UnaryUnaryClientInterceptor, grpc.StreamStreamClientInterceptor):
@@ -43,7 +57,7 @@ class LatencyInterceptor(grpc.UnaryUnaryClientInterceptor, grpc.StreamStreamClie
     def _uplink(self, request) -> None:
         delays = network_model.sample(self.options, request.frame_id, request.ByteSize())
         with self._lock:
-            self._uplinks[request.frame_id] = delays.uplink_ns
+            _keep(self._uplinks, request.frame_id, delays.uplink_ns)
         if self.live:
             self._sleep(delays.uplink_ns * 1e-9)
 
@@ -53,7 +67,7 @@ class LatencyInterceptor(grpc.UnaryUnaryClientInterceptor, grpc.StreamStreamClie
             up = self._uplinks.pop(request_frame_id, 0)
             both = LinkDelays(uplink_ns=up, downlink_ns=delays.downlink_ns)
             if not self.live:
-                self.stamps[request_frame_id] = both
+                _keep(self.stamps, request_frame_id, both)
         if self.live:
             self._sleep(delays.downlink_ns * 1e-9)
         if self.on_delay is not None:

@@ -43,6 +43,10 @@ class TransportOptions:
     jitter: float = 0.2  # each wait is scaled by U(1 - jitter, 1 + jitter)
     seed: int = 0  # for the jitter
     pushback_max_s: float = 10.0  # the longest a server's retry pushback may park the device
+    # The server's message limit (`flextrack serve --max-message-mb`, 8 MiB by default): gRPC ends the whole stream
+    # on a larger message, so such a frame is refused here and reported to on_failure instead of being sent.
+    max_message_bytes: int = 8 * 1024 * 1024
+    max_in_flight: int = 64  # requests sent and not yet answered; past it a request is refused like an over-size one
 
 
 def make_request(*, frame_id: int, capture_time_ns: int, session_id: str = "", estimator: str = "",
@@ -154,13 +158,31 @@ class TrackClient:
         return self.connected
 
     def submit(self, request: pb.EstimateRequest) -> bool:
-        """Send `request` if connected; False (nothing sent) otherwise."""
+        """Send `request` if connected; False (nothing sent) otherwise.
+
+        A request the server could not take (over `max_message_bytes`: gRPC would end the whole stream on it),
+        or one past `max_in_flight`, is not sent either: False, and `on_failure(frame_id, reason)` says why.
+        """
+        size, limit = request.ByteSize(), self.options.max_message_bytes
+        if size > limit:
+            self._refuse(request.frame_id, f"request of {size} bytes is over the {limit}-byte message limit "
+                                           f"(TransportOptions.max_message_bytes, the server's --max-message-mb); not sent")
+            return False
         with self._lock:
             if self._outbox is None:
                 return False
-            self._in_flight[request.frame_id] = time.monotonic()
-            self._outbox.put(request)
-            return True
+            full = len(self._in_flight) >= self.options.max_in_flight
+            if not full:
+                self._in_flight[request.frame_id] = time.monotonic()
+                self._outbox.put(request)
+                return True
+        self._refuse(request.frame_id, f"{self.options.max_in_flight} requests already in flight "
+                                       f"(TransportOptions.max_in_flight); not sent")
+        return False
+
+    def _refuse(self, frame_id: int, reason: str) -> None:
+        log.warning("request refused before sending: %s", reason)
+        self._deliver(self._on_failure, frame_id, reason)
 
     # -- the background side -------------------------------------------------------------------
     def _run(self) -> None:
