@@ -30,6 +30,20 @@ def add_m(T_est: np.ndarray, T_gt: np.ndarray, points_O: np.ndarray) -> float:
     return float(np.mean(np.linalg.norm(d, axis=1)))
 
 
+def adds_m(T_est: np.ndarray, T_gt: np.ndarray, points_O: np.ndarray, chunk_elements: int = 1 << 20) -> float:
+    """ADD-S (BOP's `adi`, for symmetric objects): mean over the model points under the true pose of the
+    distance to the closest model point under the estimated pose, in metres. Exact (brute force over point
+    differences, at most `chunk_elements` pairs at a time): no KD-tree, so no scipy."""
+    est = se3.transform_points(T_est, points_O)
+    gt = se3.transform_points(T_gt, points_O)
+    step = max(1, chunk_elements // max(1, len(est)))
+    nearest = np.empty(len(gt))
+    for s in range(0, len(gt), step):
+        d = gt[s:s + step, None, :] - est[None, :, :]
+        nearest[s:s + step] = np.sqrt(np.einsum("ijk,ijk->ij", d, d).min(axis=1))
+    return float(nearest.mean())
+
+
 def proj_px_many(T_est: np.ndarray, T_gt: np.ndarray, camera: PinholeCamera, points_O: np.ndarray,
                  chunk: int = 256) -> np.ndarray:
     """`proj_px` for (F, 4, 4) pose pairs at once, (F,) px; a whole run in one numpy pass."""
