@@ -47,6 +47,7 @@ class EstimateInput:
     capture_time_ns: int
     object_id: str = ""  # empty: the estimator's only object
     sequence: str = ""  # for oracles; empty: the only loaded sequence
+    session_id: str = ""  # the device session, for estimators that keep per-session state; empty: none
     camera: PinholeCamera | None = None  # None when the request carried no intrinsics
     image: np.ndarray | None = None  # HxWx3 uint8 RGB or HxW gray; None unless the estimator uses images
     keypoints: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (N, 3) rows: id, u, v (px)

@@ -22,6 +22,8 @@ BUILTIN_KINDS = {
     "gt_oracle": "estimators.gt_oracle:GtOracleEstimator",
     "pnp": "estimators.pnp:PnpEstimator",
     "pvnet": "estimators.pvnet:PvnetEstimator",
+    "region": "estimators.region.estimator:RegionEstimator",
+    "chained": "estimators.chained:ChainedEstimator",
 }
 
 
@@ -36,6 +38,14 @@ class EstimatorSpec:
     model: Path | None = None
     params: dict = field(default_factory=dict)
     base_dir: Path = Path(".")  # relative paths in params are relative to this (the config's folder)
+    built: dict = field(default_factory=dict)  # name -> Estimator: the entries above this one, for composites
+
+    def estimator(self, name: str) -> Estimator:
+        """An estimator declared above this one (composites name their parts)."""
+        if name not in self.built:
+            raise ValueError(f"estimator '{self.name}' names '{name}', which is not declared above it; "
+                             f"declared: {sorted(self.built)}")
+        return self.built[name]
 
     def path(self, value: str | Path) -> Path:
         """A path from the config: relative to its folder, or `package:PKG/REL` inside an installed package."""
@@ -121,7 +131,7 @@ class EstimatorRegistry:
             spec = EstimatorSpec(
                 name=entry.get("name", entry["kind"]), kind=entry["kind"], objects=objects, object_ids=object_ids,
                 model=resolve(entry["model"], base_dir) if "model" in entry else None,
-                params=dict(entry.get("params", {})), base_dir=base_dir)
+                params=dict(entry.get("params", {})), base_dir=base_dir, built={e.name: e for e in estimators})
             estimators.append(build_estimator(spec))
         return cls(estimators, doc.get("server", {}).get("default_estimator"), objects)
 

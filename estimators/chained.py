@@ -1,0 +1,79 @@
+"""The `chained` kind: a global estimator for the first pose and after a loss, a local one whenever
+a usable prior comes with the frame.
+
+Config (both parts declared above it, by name):
+
+    [[estimators]]
+    name = "pvnet_region"
+    kind = "chained"
+    [estimators.params]
+    global = "pvnet"          # finds the object with no prior
+    local = "region"          # refines the device's prior
+    max_prior_deg = 30.0      # a prior less certain than this (largest rotation sigma) goes global
+    max_prior_m = 0.1         # ... or than this (largest translation sigma)
+    fallback = true           # a local answer that is not OK (the object lost) is asked of the global one
+
+A prior is usable when it is sent, puts the object in front of the camera and its covariance (when
+sent) is within the limits above. The answer's `stage_ms` says which part answered ("global" or
+"local", its time in ms).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from estimators.base import EstimateInput, EstimateOutput, Estimator, Status
+
+PARAMS = {"global", "local", "max_prior_deg", "max_prior_m", "fallback"}
+
+
+class ChainedEstimator(Estimator):
+    kind = "chained"
+
+    def __init__(self, name: str, global_estimator: Estimator, local_estimator: Estimator, *,
+                 max_prior_deg: float = 30.0, max_prior_m: float = 0.1, fallback: bool = True):
+        super().__init__(name, sorted(set(global_estimator.objects) | set(local_estimator.objects)))
+        self.global_estimator = global_estimator
+        self.local_estimator = local_estimator
+        self.max_prior_rad = np.radians(max_prior_deg)
+        self.max_prior_m = max_prior_m
+        self.fallback = fallback
+        self.version = f"{global_estimator.name}@{global_estimator.version}+{local_estimator.name}@{local_estimator.version}"
+        self.uses_image = global_estimator.uses_image or local_estimator.uses_image
+        self.description = f"{global_estimator.name} without a usable prior, {local_estimator.name} with one"
+
+    @classmethod
+    def from_spec(cls, spec) -> ChainedEstimator:
+        spec.check_params(PARAMS)
+        p = dict(spec.params)
+        if "global" not in p or "local" not in p:
+            raise ValueError(f"estimator '{spec.name}' (kind chained) needs params `global` and `local` "
+                             "(names of estimators declared above it)")
+        return cls(spec.name, spec.estimator(p.pop("global")), spec.estimator(p.pop("local")), **p)
+
+    @property
+    def ready(self) -> bool:
+        return self.global_estimator.ready and self.local_estimator.ready
+
+    def usable_prior(self, inp: EstimateInput) -> bool:
+        if inp.prior_T_CO is None or inp.prior_T_CO[2, 3] <= 0:
+            return False
+        if inp.prior_covariance is None:
+            return True
+        sigma = np.sqrt(np.maximum(np.diag(inp.prior_covariance), 0.0))
+        return bool(sigma[:3].max() <= self.max_prior_rad and sigma[3:].max() <= self.max_prior_m)
+
+    def _run(self, part: Estimator, label: str, inp: EstimateInput) -> EstimateOutput:
+        start = time.perf_counter()
+        out = part.estimate(inp)
+        out.stage_ms = {**out.stage_ms, label: (time.perf_counter() - start) * 1e3}
+        return out
+
+    def estimate(self, inp: EstimateInput) -> EstimateOutput:
+        if self.usable_prior(inp) and inp.object_id in ("", *self.local_estimator.objects):
+            out = self._run(self.local_estimator, "local", inp)
+            if out.status == Status.OK or not self.fallback:
+                return out
+        return self._run(self.global_estimator, "global", inp)

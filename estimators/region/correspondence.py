@@ -1,0 +1,109 @@
+"""Correspondence lines: the closest view's contour points projected at the current pose, lines
+along their normals in the image, the colour posterior sampled along them in segments of `scale`
+pixels, and SRT3D's probabilistic model of where on each line the contour lies.
+
+Along a line, positions r (in segments, positive outwards) with foreground posteriors p_r; for a
+contour at d the smoothed step h_f(x) = 1/2 - a tanh(x / (2 s)) says how likely a segment x from
+the contour is foreground, and the line's likelihood is prod_r h_f(r - d) p_r + (1 - h_f(r - d))
+(1 - p_r). Normalised over the candidate d, it gives the contour position's mean and variance,
+which the optimizer treats as a Gaussian measurement of the projected contour point.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimators.region.histograms import ColourHistograms
+from estimators.region.viewpoint_model import ViewpointModel
+
+PIXEL_CLIP = 0.02  # pixel posteriors kept in [clip, 1 - clip]: a histogram's empty cell is not certainty
+
+
+@dataclass
+class Lines:
+    centers: np.ndarray  # (M, 2) px, the projected contour points
+    normals: np.ndarray  # (M, 2) unit, outwards in the image
+    points_C: np.ndarray  # (M, 3) m, camera frame
+    fg_px: np.ndarray  # (M,) how far inwards the line stays on the object (px)
+    bg_px: np.ndarray  # (M,) how far outwards it stays off it (px)
+
+
+def project_lines(model: ViewpointModel, R: np.ndarray, t: np.ndarray, K: np.ndarray,
+                  shape: tuple[int, int], margin_px: float = 2.0) -> Lines | None:
+    """Lines of the view closest to the pose, those with their centre in the image and in front."""
+    view = model.closest_view(R, t)
+    P = model.points[view] @ R.T + t
+    z = P[:, 2]
+    if np.any(z <= 1e-3):
+        return None
+    fx, fy = K[0, 0], K[1, 1]
+    uv = np.column_stack([fx * P[:, 0] / z + K[0, 2], fy * P[:, 1] / z + K[1, 2]])
+    n_C = model.normals[view] @ R.T
+    # the 3D normal's image direction: d(uv) along it
+    du = fx * (n_C[:, 0] * z - P[:, 0] * n_C[:, 2]) / z**2
+    dv = fy * (n_C[:, 1] * z - P[:, 1] * n_C[:, 2]) / z**2
+    n2 = np.column_stack([du, dv])
+    norm = np.linalg.norm(n2, axis=1)
+    h, w = shape
+    keep = (norm > 1e-9) & (uv[:, 0] >= margin_px) & (uv[:, 0] <= w - 1 - margin_px) & \
+        (uv[:, 1] >= margin_px) & (uv[:, 1] <= h - 1 - margin_px)
+    if keep.sum() < 8:
+        return None
+    n2 = n2[keep] / norm[keep, None]
+    scale_px = np.sqrt(fx * fy) / z[keep]  # px per metre at the point's depth
+    return Lines(uv[keep], n2, P[keep], model.fg_dist[view][keep] * scale_px, model.bg_dist[view][keep] * scale_px)
+
+
+def sample_pixels(image: np.ndarray, lines: Lines, offsets_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Colours (M, S, 3) at the pixels nearest to centre + offset * normal, and which lay in the image."""
+    xy = lines.centers[:, None, :] + offsets_px[None, :, None] * lines.normals[:, None, :]
+    x = np.floor(xy[..., 0]).astype(np.int32)
+    y = np.floor(xy[..., 1]).astype(np.int32)
+    h, w = image.shape[:2]
+    inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+    return image[np.clip(y, 0, h - 1), np.clip(x, 0, w - 1)], inside
+
+
+@dataclass(frozen=True)
+class LineModel:
+    half_segments: int = 8  # segments on each side of the line's centre
+    amplitude: float = 0.43  # SRT3D's smoothed step: h_f(x) = 1/2 - amplitude * tanh(x / (2 slope))
+    slope: float = 0.5  # in segments
+    min_variance_px2: float = 0.25  # floor of a line's contour-position variance
+
+
+def contour_distributions(image: np.ndarray, hist: ColourHistograms, lines: Lines, scale: int,
+                          cfg: LineModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per line: the mean (px, along the normal, from the centre) and variance (px^2) of the contour
+    position, and whether the line carried information (both colours seen)."""
+    H = cfg.half_segments
+    seg = np.arange(-H, H) + 0.5  # segment centres, segments
+    # each segment is `scale` pixels; its posterior multiplies its pixels' (log-odds summed)
+    sub = (np.arange(scale) + 0.5) / scale - 0.5
+    offsets = ((seg[:, None] + sub[None, :]) * scale).ravel()
+    colours, inside = sample_pixels(image, lines, offsets)
+    p = np.clip(hist.posterior(hist.index(colours)), PIXEL_CLIP, 1 - PIXEL_CLIP)
+    logit = np.log(p) - np.log1p(-p)
+    # pixels beyond the object's other side (inwards) or another part of it (outwards), and off the
+    # image, carry nothing
+    usable = inside & (offsets[None, :] > -lines.fg_px[:, None]) & (offsets[None, :] < lines.bg_px[:, None])
+    logit = np.where(usable, logit, 0.0).reshape(len(lines.centers), 2 * H, scale).sum(axis=2)
+    p_seg = 1.0 / (1.0 + np.exp(-np.clip(logit, -30, 30)))  # (M, 2H)
+    D = H - 2
+    d = np.arange(-D, D + 1, dtype=float)  # candidate contour positions, segments
+    hf = 0.5 - cfg.amplitude * np.tanh((seg[None, :] - d[:, None]) / (2 * cfg.slope))  # (2D+1, 2H)
+    # log-likelihood of each candidate: sum over segments of log(h_f p + h_b (1 - p))
+    ll = np.log(hf[None, :, :] * p_seg[:, None, :] + (1 - hf[None, :, :]) * (1 - p_seg[:, None, :])).sum(axis=2)
+    ll -= ll.max(axis=1, keepdims=True)
+    prob = np.exp(ll)
+    prob /= prob.sum(axis=1, keepdims=True)
+    mean = prob @ d
+    var = prob @ d**2 - mean**2
+    # a line carries information when it goes from foreground (inside) to background (outside) and its
+    # contour is not pressed against the end of the range; a line across an occluder (background on
+    # both sides) or along the object's print (foreground on both) would pull the pose wrongly
+    lean = p_seg - 0.5
+    informative = (lean[:, :H].sum(axis=1) > 0) & (lean[:, H:].sum(axis=1) < 0) & (np.abs(mean) < D - 0.5)
+    return mean * scale, np.maximum(var * scale**2, cfg.min_variance_px2), informative

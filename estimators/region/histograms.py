@@ -1,0 +1,62 @@
+"""Foreground / background colour histograms (RGB, `bins`^3 cells), learned online.
+
+The first frame of a session initialises both from the pixels along the correspondence lines at the
+prior pose (inside the outline: foreground, outside: background); every later frame blends in the
+pixels at the estimated pose with a learning rate (SRT3D: 0.2). A pixel's foreground posterior is
+h_f / (h_f + h_b), both histograms normalised (equal priors).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class ColourHistograms:
+    def __init__(self, bins: int = 32, learning_rate_f: float = 0.2, learning_rate_b: float = 0.2):
+        if 256 % bins:
+            raise ValueError(f"histogram bins per channel must divide 256, got {bins}")
+        self.bins = bins
+        self.shift = int(np.log2(256 // bins))
+        self.learning_rate_f = learning_rate_f
+        self.learning_rate_b = learning_rate_b
+        self.fg = np.full(bins**3, 1.0 / bins**3)
+        self.bg = np.full(bins**3, 1.0 / bins**3)
+        self.initialised = False
+
+    def index(self, colours: np.ndarray) -> np.ndarray:
+        """Cell of each (..., 3) uint8 RGB colour."""
+        c = colours.astype(np.int32) >> self.shift
+        return (c[..., 0] * self.bins + c[..., 1]) * self.bins + c[..., 2]
+
+    def _normalised(self, cells: np.ndarray) -> np.ndarray:
+        h = np.bincount(cells.ravel(), minlength=self.bins**3).astype(float)
+        return h / max(h.sum(), 1.0)
+
+    def update(self, fg_colours: np.ndarray, bg_colours: np.ndarray) -> None:
+        """Blend in the colours seen inside (fg) and outside (bg); the first call replaces."""
+        if len(fg_colours) == 0 or len(bg_colours) == 0:
+            return
+        new_fg, new_bg = self._normalised(self.index(fg_colours)), self._normalised(self.index(bg_colours))
+        if not self.initialised:
+            self.fg, self.bg, self.initialised = new_fg, new_bg, True
+            return
+        self.fg = (1 - self.learning_rate_f) * self.fg + self.learning_rate_f * new_fg
+        self.bg = (1 - self.learning_rate_b) * self.bg + self.learning_rate_b * new_bg
+
+    def mixed(self, other: ColourHistograms, weight: float) -> ColourHistograms:
+        """A new pair: (1 - weight) of these and `weight` of the other's (both initialised)."""
+        out = ColourHistograms(self.bins, self.learning_rate_f, self.learning_rate_b)
+        out.fg = (1 - weight) * self.fg + weight * other.fg
+        out.bg = (1 - weight) * self.bg + weight * other.bg
+        out.initialised = True
+        return out
+
+    def blend_foreground(self, colours: np.ndarray, weight: float) -> None:
+        """Mix the foreground histogram with that of `colours` (e.g. the mesh's vertex colours)."""
+        if len(colours):
+            self.fg = (1 - weight) * self.fg + weight * self._normalised(self.index(colours))
+
+    def posterior(self, cells: np.ndarray) -> np.ndarray:
+        """P(foreground | colour) for each cell index, in (0, 1)."""
+        f, b = self.fg[cells], self.bg[cells]
+        return (f + 1e-9) / (f + b + 2e-9)
