@@ -17,14 +17,15 @@ setup: $(STAMP)  ## create .venv with the backend, simulator, training and test 
 demo: $(STAMP)  ## start a backend, track a simulated sequence over gRPC, print the table, write plots
 	$(PY) -m flextrack demo --out out/demo
 
-test: $(STAMP)  ## the whole test suite (about 10 minutes on 2 cores)
+test: lint  ## lint (ruff + import contracts), then the whole test suite (about 10 minutes on 2 cores)
 	$(PY) -m pytest -q
 
 protos: $(STAMP)  ## regenerate flextrack/v1 from protos/ (never edit the generated files)
 	$(PY) -m flextrack.protogen
 
-lint: $(STAMP)
+lint: $(STAMP)  ## ruff, and the import contracts of pyproject.toml's [tool.importlinter] (lint-imports)
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/lint-imports --no-cache
 
 clean:
 	rm -rf $(VENV) out .pytest_cache
