@@ -7,9 +7,9 @@ import pytest
 from estimators.base import EstimateInput, Status
 from estimators.gt_oracle import GtOracleEstimator
 from flextrack import wire
-from flextrack.benchmarks.toy_sequence import write_orbit_sequence
 from flextrack.evaluation import nees_calibration as nc
 from flextrack.formats import sequence as sequence_io
+from flextrack.testing.toy_sequence import write_orbit_sequence
 
 
 def assert_spd(cov):

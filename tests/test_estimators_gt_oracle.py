@@ -6,10 +6,10 @@ import pytest
 from estimators.base import EstimateInput, Status, UnknownObject, UnknownSequence
 from estimators.gt_oracle import GtOracleEstimator
 from estimators.registry import EstimatorRegistry
-from flextrack.benchmarks.toy_sequence import write_orbit_sequence
 from flextrack.formats import sequence as sequence_io
 from flextrack.geometry import se3, so3
 from flextrack.geometry.camera import PinholeCamera
+from flextrack.testing.toy_sequence import write_orbit_sequence
 from flextrack.v1 import pose_estimation_pb2 as pb
 from service.estimation import EstimationService
 

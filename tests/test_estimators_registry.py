@@ -11,7 +11,7 @@ from estimators.gt_oracle import GtOracleEstimator
 from estimators.pnp import PnpEstimator
 from estimators.registry import EstimatorRegistry, known_kinds
 from flextrack import assets
-from flextrack.benchmarks.toy_sequence import write_orbit_sequence
+from flextrack.testing.toy_sequence import write_orbit_sequence
 
 
 @pytest.fixture

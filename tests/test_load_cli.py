@@ -9,9 +9,9 @@ import pytest
 
 from estimators.gt_oracle import GtOracleEstimator
 from estimators.registry import EstimatorRegistry
-from flextrack.benchmarks.toy_sequence import write_orbit_sequence
 from flextrack.cli import main
 from flextrack.loadtest import front_proxy, runner, workload
+from flextrack.testing.toy_sequence import write_orbit_sequence
 from service.hardening import Hardening
 from service.server import BackgroundServer
 

@@ -11,7 +11,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from client_sdk import credentials as client_credentials
 from estimators.gt_oracle import GtOracleEstimator
 from estimators.registry import EstimatorRegistry
-from flextrack.benchmarks.toy_sequence import write_orbit_sequence
+from flextrack.testing.toy_sequence import write_orbit_sequence
 from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
 from service import security

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import grpc
 
-from flextrack.benchmarks.toy_sequence import write_orbit_sequence
+from flextrack.testing.toy_sequence import write_orbit_sequence
 from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
 from service import cli

@@ -15,10 +15,10 @@ from estimators.gt_oracle import GtOracleEstimator
 from estimators.objects import ObjectRegistry, load_object
 from estimators.pnp import PnpEstimator
 from estimators.registry import EstimatorRegistry
-from flextrack.benchmarks.toy_sequence import write_orbit_sequence
 from flextrack.formats import sequence as sequence_io
 from flextrack.geometry import metrics, se3, so3
 from flextrack.geometry.camera import PinholeCamera
+from flextrack.testing.toy_sequence import write_orbit_sequence
 from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
 from service.server import BackgroundServer

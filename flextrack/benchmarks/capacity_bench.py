@@ -67,7 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _toy_config(tmp: Path) -> tuple[Path, Path]:
-    from flextrack.benchmarks.toy_sequence import write_orbit_sequence
+    from flextrack.testing.toy_sequence import write_orbit_sequence
 
     seq = write_orbit_sequence(tmp / "orbit", frames=300)
     config = tmp / "capacity.toml"

@@ -28,7 +28,7 @@ from flextrack.loadtest import servers
 REPO = Path(__file__).resolve().parents[2]
 TOOL = REPO.parent / "shared" / "tools" / "container-check"
 IN_CONTAINER = (
-    "python3 -c \"from flextrack.benchmarks.toy_sequence import write_orbit_sequence; "
+    "python3 -c \"from flextrack.testing.toy_sequence import write_orbit_sequence; "
     "write_orbit_sequence('/tmp/check/orbit', frames=30); "
     "open('/tmp/check/check.toml', 'w').write('[[estimators]]\\nname = \\\"gt_oracle\\\"\\nkind = \\\"gt_oracle\\\"\\n"
     "[estimators.params]\\nsequence_roots = [\\\"/tmp/check/orbit\\\"]\\n')\" "
@@ -45,8 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _estimate_matches_ground_truth(address: str) -> tuple[bool, str]:
     """One oracle request from the host; the pose must be the toy sequence's ground truth."""
-    from flextrack.benchmarks.toy_sequence import write_orbit_sequence
     from flextrack.geometry import se3
+    from flextrack.testing.toy_sequence import write_orbit_sequence
     from flextrack.v1 import pose_estimation_pb2 as pb
     from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
 

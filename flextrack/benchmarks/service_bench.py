@@ -138,7 +138,7 @@ async def _compare(servers: dict[str, tuple[str, int]], mode: str, requests: lis
 
 
 def run(args: argparse.Namespace) -> int:
-    from flextrack.benchmarks.toy_sequence import write_orbit_sequence
+    from flextrack.testing.toy_sequence import write_orbit_sequence
 
     with tempfile.TemporaryDirectory() as tmp:
         seq = write_orbit_sequence(Path(tmp) / "orbit", frames=300)
