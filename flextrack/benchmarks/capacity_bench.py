@@ -24,8 +24,6 @@ from pathlib import Path
 
 from flextrack.loadtest import front_proxy, ramp, report, runner, servers, workload
 
-REPO = Path(__file__).resolve().parents[2]
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path,
@@ -96,7 +94,7 @@ def _overload(name: str, spec: runner.LoadSpec, work: workload.Workload, clients
               probe_cpus: set[int] | None = None, probe_nice: int = 0) -> dict:
     # A lone probe process times refusals as one device sees them, apart from the load generator's loop.
     probe = subprocess.Popen([sys.executable, "-m", "flextrack.benchmarks.refusal_probe", spec.targets[0],
-                              str(spec.warmup_s + spec.duration_s)], cwd=servers.REPO, stdout=subprocess.PIPE, text=True)
+                              str(spec.warmup_s + spec.duration_s)], stdout=subprocess.PIPE, text=True)
     servers.pin(probe.pid, probe_cpus)
     if probe_nice:
         os.setpriority(os.PRIO_PROCESS, probe.pid, probe_nice)

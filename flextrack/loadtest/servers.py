@@ -14,7 +14,6 @@ from pathlib import Path
 import grpc
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-REPO = Path(__file__).resolve().parents[2]
 ECHO_MAIN = """
 import asyncio, sys
 from flextrack.benchmarks.echo_servicer import start_echo_server
@@ -102,9 +101,9 @@ def start_serve(serve_args: list[str], name: str = "flextrack", port: int | None
     command = [sys.executable, "-m", "flextrack", "serve", "--host", "127.0.0.1", "--port", str(port), *serve_args]
     if log_path:
         with open(log_path, "ab") as log:  # the child keeps its own copy of the file descriptor
-            process = subprocess.Popen(command, cwd=REPO, stdout=log, stderr=log)
+            process = subprocess.Popen(command, stdout=log, stderr=log)
     else:
-        process = subprocess.Popen(command, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     server = ServerProcess(name, address, process)
     try:
         pin(process.pid, cpus)
@@ -119,7 +118,7 @@ def start_echo(port: int | None = None, cpus: set[int] | None = None) -> ServerP
     """The no-op echo servicer in a child process (it has no health service: wait for ListEstimators)."""
     port = port or free_port()
     address = f"127.0.0.1:{port}"
-    process = subprocess.Popen([sys.executable, "-c", ECHO_MAIN, str(port)], cwd=REPO)
+    process = subprocess.Popen([sys.executable, "-c", ECHO_MAIN, str(port)])
     pin(process.pid, cpus)
     from flextrack.v1 import pose_estimation_pb2 as pb
     from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
