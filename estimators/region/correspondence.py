@@ -56,14 +56,32 @@ def project_lines(model: ViewpointModel, R: np.ndarray, t: np.ndarray, K: np.nda
     return Lines(uv[keep], n2, P[keep], model.fg_dist[view][keep] * scale_px, model.bg_dist[view][keep] * scale_px)
 
 
-def sample_pixels(image: np.ndarray, lines: Lines, offsets_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Colours (M, S, 3) at the pixels nearest to centre + offset * normal, and which lay in the image."""
+@dataclass(frozen=True)
+class CellImage:
+    """The frame's pixels as histogram cells (one int a pixel, computed once a frame) over a region
+    of interest; pixels outside it count as off the image."""
+
+    cells: np.ndarray  # (h, w) int32
+    x0: int
+    y0: int
+
+    @classmethod
+    def around(cls, image: np.ndarray, hist: ColourHistograms, centers: np.ndarray, pad_px: float) -> CellImage:
+        h, w = image.shape[:2]
+        x0, y0 = np.maximum(np.floor(centers.min(axis=0) - pad_px).astype(int), 0)
+        x1, y1 = np.minimum(np.ceil(centers.max(axis=0) + pad_px).astype(int) + 1, [w, h])
+        x0, y0 = min(x0, max(x1 - 1, 0)), min(y0, max(y1 - 1, 0))
+        return cls(hist.index(image[y0:max(y1, y0 + 1), x0:max(x1, x0 + 1)]), int(x0), int(y0))
+
+
+def sample_pixels(frame: CellImage, lines: Lines, offsets_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cells (M, S) at the pixels nearest to centre + offset * normal, and which lay in the frame's region."""
     xy = lines.centers[:, None, :] + offsets_px[None, :, None] * lines.normals[:, None, :]
-    x = np.floor(xy[..., 0]).astype(np.int32)
-    y = np.floor(xy[..., 1]).astype(np.int32)
-    h, w = image.shape[:2]
+    x = np.floor(xy[..., 0]).astype(np.int32) - frame.x0
+    y = np.floor(xy[..., 1]).astype(np.int32) - frame.y0
+    h, w = frame.cells.shape
     inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
-    return image[np.clip(y, 0, h - 1), np.clip(x, 0, w - 1)], inside
+    return frame.cells[np.clip(y, 0, h - 1), np.clip(x, 0, w - 1)], inside
 
 
 @dataclass(frozen=True)
@@ -72,24 +90,27 @@ class LineModel:
     amplitude: float = 0.43  # SRT3D's smoothed step: h_f(x) = 1/2 - amplitude * tanh(x / (2 slope))
     slope: float = 0.5  # in segments
     min_variance_px2: float = 0.25  # floor of a line's contour-position variance
+    pixels_per_segment: int = 2  # pixels sampled per segment (each standing for scale / n of them)
 
 
-def contour_distributions(image: np.ndarray, hist: ColourHistograms, lines: Lines, scale: int,
+def contour_distributions(frame: CellImage, hist: ColourHistograms, lines: Lines, scale: int,
                           cfg: LineModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per line: the mean (px, along the normal, from the centre) and variance (px^2) of the contour
     position, and whether the line carried information (both colours seen)."""
     H = cfg.half_segments
     seg = np.arange(-H, H) + 0.5  # segment centres, segments
-    # each segment is `scale` pixels; its posterior multiplies its pixels' (log-odds summed)
-    sub = (np.arange(scale) + 0.5) / scale - 0.5
+    # each segment is `scale` pixels; its posterior multiplies its pixels' (log-odds summed), of at most
+    # `pixels_per_segment` of them spread over it (a coarse segment's every pixel costs time, not accuracy)
+    n = min(scale, cfg.pixels_per_segment)
+    sub = (np.arange(n) + 0.5) / n - 0.5
     offsets = ((seg[:, None] + sub[None, :]) * scale).ravel()
-    colours, inside = sample_pixels(image, lines, offsets)
-    p = np.clip(hist.posterior(hist.index(colours)), PIXEL_CLIP, 1 - PIXEL_CLIP)
+    cells, inside = sample_pixels(frame, lines, offsets)
+    p = np.clip(hist.posterior(cells), PIXEL_CLIP, 1 - PIXEL_CLIP)
     logit = np.log(p) - np.log1p(-p)
     # pixels beyond the object's other side (inwards) or another part of it (outwards), and off the
     # image, carry nothing
     usable = inside & (offsets[None, :] > -lines.fg_px[:, None]) & (offsets[None, :] < lines.bg_px[:, None])
-    logit = np.where(usable, logit, 0.0).reshape(len(lines.centers), 2 * H, scale).sum(axis=2)
+    logit = np.where(usable, logit, 0.0).reshape(len(lines.centers), 2 * H, n).sum(axis=2) * (scale / n)
     p_seg = 1.0 / (1.0 + np.exp(-np.clip(logit, -30, 30)))  # (M, 2H)
     D = H - 2
     d = np.arange(-D, D + 1, dtype=float)  # candidate contour positions, segments

@@ -10,12 +10,10 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-import cv2
 import numpy as np
-import trimesh
 
 from estimators.base import EstimateInput, EstimateOutput, Estimator, InvalidInput, Status
-from estimators.region.correspondence import LineModel, project_lines, sample_pixels
+from estimators.region.correspondence import CellImage, LineModel, project_lines, sample_pixels
 from estimators.region.histograms import ColourHistograms
 from estimators.region.optimizer import OptimizerConfig, optimize
 from estimators.region.session_store import SessionStore
@@ -24,7 +22,8 @@ from estimators.region.viewpoint_model import ViewpointModel, cached_viewpoint_m
 PARAMS = {"scales", "iterations_per_scale", "half_segments", "line_weight", "damping_rotation",
           "damping_translation", "covariance_inflation", "default_prior_sigma_m", "default_prior_sigma_deg",
           "bins", "learning_rate", "max_sessions", "max_session_age_s", "views_subdivisions", "contour_points",
-          "cache_dir", "min_confidence", "histogram_px", "refit_scales", "refits", "histogram_init", "margin_factor", "model_colour_weight", "session_weight"}
+          "cache_dir", "min_confidence", "histogram_px", "refit_scales", "refits", "margin_factors", "session_weight",
+          "retry_below", "retry_margin_factors"}
 
 
 class RegionEstimator(Estimator):
@@ -38,8 +37,8 @@ class RegionEstimator(Estimator):
                  learning_rate: float = 0.2, max_sessions: int = 1024, max_session_age_s: float = 600.0,
                  views_subdivisions: int = 4, contour_points: int = 200, cache_dir: str | Path | None = None,
                  min_confidence: float = 0.3, histogram_px: int = 20, refit_scales: tuple[int, ...] = (2, 1),
-                 refits: int = 1, histogram_init: str = "lines", margin_factor: float = 0.5,
-                 model_colour_weight: float = 0.0, session_weight: float = 0.5):
+                 refits: int = 1, margin_factors: tuple[float, float] = (0.5, 0.5), session_weight: float = 0.5,
+                 retry_below: float = 0.6, retry_margin_factors: tuple[float, float] | None = None):
         """`objects`: object id -> ObjectModel (estimators.objects)."""
         super().__init__(name, list(objects))
         self._objects = dict(objects)
@@ -54,14 +53,11 @@ class RegionEstimator(Estimator):
         self.histogram_px = histogram_px
         self.refit_scales = tuple(refit_scales)
         self.refits = refits
-        if histogram_init not in ("region", "lines"):
-            raise ValueError(f"histogram_init is 'region' or 'lines', not {histogram_init!r}")
-        self.histogram_init = histogram_init
-        self.margin_factor = margin_factor
-        self._models: dict[str, ViewpointModel] = {}
-        self._colours: dict[str, np.ndarray | None] = {}
-        self.model_colour_weight = model_colour_weight
+        self.margin_factors = tuple(margin_factors)
+        self.retry_below = retry_below
+        self.retry_margin_factors = tuple(retry_margin_factors) if retry_margin_factors else None
         self.session_weight = session_weight
+        self._models: dict[str, ViewpointModel] = {}
         self.sessions: SessionStore[ColourHistograms] = SessionStore(
             lambda: ColourHistograms(bins, learning_rate, learning_rate), max_sessions, max_session_age_s)
 
@@ -82,22 +78,6 @@ class RegionEstimator(Estimator):
     def _radius(self, object_id: str) -> float:
         return 0.5 * self._objects[object_id].diameter_m
 
-    def model_colours(self, object_id: str) -> np.ndarray | None:
-        """The mesh's vertex colours (N, 3) uint8 RGB, or None when it has none (read once)."""
-        if object_id not in self._colours:
-            colours = None
-            try:
-                mesh = trimesh.load(self._objects[object_id].model_path, process=False, force="mesh")
-                visual = getattr(mesh, "visual", None)
-                if getattr(visual, "kind", None) == "vertex":
-                    colours = np.asarray(visual.vertex_colors)[:, :3].astype(np.uint8)
-                    if np.all(colours == colours[0]):
-                        colours = None  # one colour everywhere: trimesh's default, no information
-            except (OSError, ValueError):
-                colours = None
-            self._colours[object_id] = colours
-        return self._colours[object_id]
-
     def viewpoint_model(self, object_id: str) -> ViewpointModel:
         """Built on first use (or read from the disk cache), then kept."""
         if object_id not in self._models:
@@ -108,35 +88,17 @@ class RegionEstimator(Estimator):
                                                              **self.view_options)
         return self._models[object_id]
 
-    def _histogram_samples(self, image: np.ndarray, lines, margin_px: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-        """Colours inside and outside the outline, from `margin_px` off it (the pose's uncertainty) to
-        `histogram_px` beyond that; inside, short of the object's far side."""
-        offsets = margin_px + np.arange(0, self.histogram_px, dtype=float)
-        fg, fg_in = sample_pixels(image, lines, -offsets)
-        bg, bg_in = sample_pixels(image, lines, offsets)
-        deep = np.maximum(0.8 * lines.fg_px, np.minimum(margin_px + 2.0, 0.5 * lines.fg_px))
-        fg_in &= offsets[None, :] < deep[:, None]
-        bg_in &= offsets[None, :] < 0.8 * lines.bg_px[:, None] + margin_px
+    def _histogram_samples(self, frame: CellImage, lines, margin_fg: float = 1.0,
+                           margin_bg: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """Colours along the lines inside the outline from `margin_fg` and outside from `margin_bg` off it
+        (the pose's uncertainty), `histogram_px` deep; inside, short of the object's far side."""
+        depth = np.arange(0, self.histogram_px, dtype=float)
+        fg, fg_in = sample_pixels(frame, lines, -(margin_fg + depth))
+        bg, bg_in = sample_pixels(frame, lines, margin_bg + depth)
+        deep = np.maximum(0.8 * lines.fg_px, np.minimum(margin_fg + 2.0, 0.5 * lines.fg_px))
+        fg_in &= (margin_fg + depth)[None, :] < deep[:, None]
+        bg_in &= (margin_bg + depth)[None, :] < 0.8 * lines.bg_px[:, None] + margin_bg
         return fg[fg_in], bg[bg_in]
-
-    def _region_samples(self, image: np.ndarray, lines, margin_px: float) -> tuple[np.ndarray, np.ndarray]:
-        """Colours of the whole silhouette (the projected outline's polygon) shrunk by `margin_px`, and
-        of a ring `histogram_px` wide around it grown by `margin_px`; lines' samples when too small."""
-        h, w = image.shape[:2]
-        m = int(np.ceil(margin_px)) + self.histogram_px + 2
-        lo = np.maximum(np.floor(lines.centers.min(axis=0)).astype(int) - m, 0)
-        hi = np.minimum(np.ceil(lines.centers.max(axis=0)).astype(int) + m, [w - 1, h - 1])
-        size = hi - lo + 1
-        mask = np.zeros((size[1], size[0]), np.uint8)
-        cv2.fillPoly(mask, [np.round((lines.centers - lo) * 16).astype(np.int32)], 1, cv2.LINE_8, shift=4)
-        dist_in = cv2.distanceTransform(mask, cv2.DIST_L2, 3)
-        dist_out = cv2.distanceTransform(1 - mask, cv2.DIST_L2, 3)
-        crop = image[lo[1]:hi[1] + 1, lo[0]:hi[0] + 1]
-        fg = crop[dist_in > margin_px]
-        bg = crop[(dist_out > margin_px) & (dist_out <= margin_px + self.histogram_px)]
-        if len(fg) < 50:
-            return self._histogram_samples(image, lines, margin_px)
-        return fg, bg
 
     def _prior_px(self, K: np.ndarray, t: np.ndarray, covariance: np.ndarray, radius_m: float) -> float:
         """About how far (px, one sigma) the prior's outline may lie from the object's."""
@@ -144,17 +106,42 @@ class RegionEstimator(Estimator):
         sigma = np.sqrt(np.maximum(np.diag(covariance), 0.0))
         return float(f * (np.hypot(sigma[3], sigma[4]) + radius_m * np.hypot(sigma[0], sigma[1])))
 
-    def _confidence(self, image: np.ndarray, hist: ColourHistograms, lines) -> float:
+    def _confidence(self, frame: CellImage, hist: ColourHistograms, lines) -> float:
         """How well the colours agree with the outline: mean foreground posterior a few px inside minus
         a few px outside, over the lines (0: no agreement, 1: perfect)."""
         offsets = np.arange(1, 5, dtype=float)
-        fg, fg_in = sample_pixels(image, lines, -offsets + 0.5)
-        bg, bg_in = sample_pixels(image, lines, offsets + 0.5)
-        pf = hist.posterior(hist.index(fg))
-        pb = hist.posterior(hist.index(bg))
+        fg, fg_in = sample_pixels(frame, lines, -offsets + 0.5)
+        bg, bg_in = sample_pixels(frame, lines, offsets + 0.5)
+        pf = hist.posterior(fg)
+        pb = hist.posterior(bg)
         if not fg_in.any() or not bg_in.any():
             return 0.0
         return float(np.clip(pf[fg_in].mean() - pb[bg_in].mean(), 0.0, 1.0))
+
+    def _fit(self, frame, shape, K, model, hist, R0, t0, information, prior_px, margin_factors):
+        """(confidence, result, lines at the result): this frame's own histograms from the prior's
+        outline, `margin_factors` x the prior's pixel uncertainty off it (inside, outside), a first fit,
+        then histograms again from the fitted outline and the fine scales again (EM-like). A session's
+        histograms, learned on its earlier frames, are mixed in with `session_weight`."""
+        def frame_histograms(lines, margins):
+            own = ColourHistograms(self.bins, self.learning_rate, self.learning_rate)
+            own.update(*self._histogram_samples(frame, lines, *margins))
+            return own.mixed(hist, self.session_weight) if hist.initialised else own
+
+        margins = [float(np.clip(f * prior_px, 1.0, 3.0 * self.histogram_px)) for f in margin_factors]
+        work = frame_histograms(project_lines(model, R0, t0, K, shape), margins)
+        result = optimize(frame, K, model, work, R0, t0, information, self.optimizer, shape=shape)
+        for _ in range(self.refits):
+            lines = None if result is None else project_lines(model, result.R, result.t, K, shape)
+            if lines is None:
+                break
+            work = frame_histograms(lines, (1.0, 1.0))
+            result = optimize(frame, K, model, work, R0, t0, information, self.optimizer,
+                              start=(result.R, result.t), scales=self.refit_scales, shape=shape) or result
+        lines = None if result is None else project_lines(model, result.R, result.t, K, shape)
+        if lines is None:
+            return -1.0, None, None
+        return self._confidence(frame, work, lines), result, lines
 
     def estimate(self, inp: EstimateInput) -> EstimateOutput:
         start = time.perf_counter()
@@ -176,42 +163,26 @@ class RegionEstimator(Estimator):
             hist, fresh = ColourHistograms(self.bins, self.learning_rate, self.learning_rate), True
         stage = {"setup": (time.perf_counter() - start) * 1e3}
         t_opt = time.perf_counter()
-        # This frame's own histograms: from the prior's outline, off it by the prior's uncertainty, a
-        # first fit, then histograms again from the fitted outline and the fine scales again (EM-like).
-        # A session's histograms, learned on its earlier frames, are mixed in with `session_weight`.
-        lines = project_lines(model, R0, t0, K, image.shape[:2])
+        shape = image.shape[:2]
+        lines = project_lines(model, R0, t0, K, shape)
         if lines is None:
             return EstimateOutput.not_found("the prior puts the object out of view")
-        margin = float(np.clip(self.margin_factor * self._prior_px(K, t0, cov, self._radius(object_id)), 1.0,
-                               self.histogram_px))
-        sampler = self._region_samples if self.histogram_init == "region" else self._histogram_samples
-
-        def frame_histograms(lines, margin):
-            own = ColourHistograms(self.bins, self.learning_rate, self.learning_rate)
-            own.update(*sampler(image, lines, margin))
-            colours = self.model_colours(object_id) if self.model_colour_weight > 0 else None
-            if colours is not None:  # the mesh's own colours as part of the foreground model
-                own.blend_foreground(colours, self.model_colour_weight)
-            return own.mixed(hist, self.session_weight) if hist.initialised else own
-
-        work = frame_histograms(lines, margin)
-        result = optimize(image, K, model, work, R0, t0, information, self.optimizer)
-        for _ in range(self.refits):
-            lines = None if result is None else project_lines(model, result.R, result.t, K, image.shape[:2])
-            if lines is None:
-                break
-            work = frame_histograms(lines, 1.0)
-            result = optimize(image, K, model, work, R0, t0, information, self.optimizer,
-                              start=(result.R, result.t), scales=self.refit_scales) or result
+        prior_px = self._prior_px(K, t0, cov, self._radius(object_id))
+        # the pixels as histogram cells, once, as far around the prior's outline as any line may reach
+        reach = max(self.optimizer.scales) * self.optimizer.line_model.half_segments
+        frame = CellImage.around(image, hist, lines.centers, reach + 3 * prior_px + 2 * self.histogram_px)
+        best = self._fit(frame, shape, K, model, hist, R0, t0, information, prior_px, self.margin_factors)
+        if best[0] < self.retry_below and self.retry_margin_factors:
+            # lost, most likely from histograms learned off the prior's outline: again, further off it
+            other = self._fit(frame, shape, K, model, hist, R0, t0, information, prior_px,
+                              self.retry_margin_factors)
+            best = max(best, other, key=lambda fit: fit[0])
+        confidence, result, lines = best
         stage["optimize"] = (time.perf_counter() - t_opt) * 1e3
-        if result is None or result.last_lines is None:
-            return EstimateOutput.not_found("the object's outline is out of view at the prior pose")
-        lines = project_lines(model, result.R, result.t, K, image.shape[:2])
-        if lines is None:
-            return EstimateOutput.not_found("the refined pose puts the object out of view")
-        confidence = self._confidence(image, work, lines)
+        if result is None or lines is None:
+            return EstimateOutput.not_found("the object's outline left the image")
         if confidence >= self.min_confidence:
-            hist.update(*self._histogram_samples(image, lines))
+            hist.update(*self._histogram_samples(frame, lines))
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = result.R, result.t
         stage["total"] = (time.perf_counter() - start) * 1e3

@@ -32,11 +32,11 @@ class ColourHistograms:
         h = np.bincount(cells.ravel(), minlength=self.bins**3).astype(float)
         return h / max(h.sum(), 1.0)
 
-    def update(self, fg_colours: np.ndarray, bg_colours: np.ndarray) -> None:
-        """Blend in the colours seen inside (fg) and outside (bg); the first call replaces."""
-        if len(fg_colours) == 0 or len(bg_colours) == 0:
+    def update(self, fg_cells: np.ndarray, bg_cells: np.ndarray) -> None:
+        """Blend in the pixels seen inside (fg) and outside (bg), as cells (`index`); the first call replaces."""
+        if len(fg_cells) == 0 or len(bg_cells) == 0:
             return
-        new_fg, new_bg = self._normalised(self.index(fg_colours)), self._normalised(self.index(bg_colours))
+        new_fg, new_bg = self._normalised(fg_cells), self._normalised(bg_cells)
         if not self.initialised:
             self.fg, self.bg, self.initialised = new_fg, new_bg, True
             return
@@ -50,11 +50,6 @@ class ColourHistograms:
         out.bg = (1 - weight) * self.bg + weight * other.bg
         out.initialised = True
         return out
-
-    def blend_foreground(self, colours: np.ndarray, weight: float) -> None:
-        """Mix the foreground histogram with that of `colours` (e.g. the mesh's vertex colours)."""
-        if len(colours):
-            self.fg = (1 - weight) * self.fg + weight * self._normalised(self.index(colours))
 
     def posterior(self, cells: np.ndarray) -> np.ndarray:
         """P(foreground | colour) for each cell index, in (0, 1)."""

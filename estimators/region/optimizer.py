@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estimators.region.correspondence import LineModel, Lines, contour_distributions, project_lines
+from estimators.region.correspondence import CellImage, LineModel, Lines, contour_distributions, project_lines
 from estimators.region.histograms import ColourHistograms
 from estimators.region.viewpoint_model import ViewpointModel
 from flextrack.geometry import so3
@@ -60,10 +60,10 @@ class OptimizationResult:
     last_lines: Lines | None
 
 
-def optimize(image: np.ndarray, K: np.ndarray, model: ViewpointModel, hist: ColourHistograms,
+def optimize(frame: CellImage, K: np.ndarray, model: ViewpointModel, hist: ColourHistograms,
              R0: np.ndarray, t0: np.ndarray, prior_information: np.ndarray,
              cfg: OptimizerConfig, start: tuple[np.ndarray, np.ndarray] | None = None,
-             scales: tuple[int, ...] | None = None) -> OptimizationResult | None:
+             scales: tuple[int, ...] | None = None, shape: tuple[int, int] = (480, 640)) -> OptimizationResult | None:
     """The pose refined from `start` (default: the prior's mean (R0, t0)) over `scales` (default: the
     config's); None when no lines fall in view."""
     R, t = (R0.copy(), t0.copy()) if start is None else (start[0].copy(), start[1].copy())
@@ -72,10 +72,10 @@ def optimize(image: np.ndarray, K: np.ndarray, model: ViewpointModel, hist: Colo
     used, lines = 0, None
     for scale in scales or cfg.scales:
         for _ in range(cfg.iterations_per_scale):
-            lines = project_lines(model, R, t, K, image.shape[:2])
+            lines = project_lines(model, R, t, K, shape)
             if lines is None:
                 return None
-            mean, var, informative = contour_distributions(image, hist, lines, scale, cfg.line_model)
+            mean, var, informative = contour_distributions(frame, hist, lines, scale, cfg.line_model)
             J = line_jacobians(lines, K, t)[informative]
             w = cfg.line_weight / var[informative]
             used = int(informative.sum())

@@ -163,15 +163,17 @@ def evaluate(estimator, frames: list[Frame], levels: list[PriorLevel], draws: in
                 inp = EstimateInput(frame_id=fi, capture_time_ns=0, object_id=object_id, session_id=session,
                                     camera=camera, image=images[f.rgb_path], prior_T_CO=prior,
                                     prior_covariance=None if prior is None else level.covariance)
-                start = time.perf_counter()
+                start, cpu_start = time.perf_counter(), time.process_time()
                 try:
                     ans = estimator.estimate(inp)
                     status, message = ans.status.value, ans.message
                 except EstimatorError as exc:
                     ans, status, message = None, "REFUSED", str(exc)
                 ms = (time.perf_counter() - start) * 1e3
+                cpu_ms = (time.process_time() - cpu_start) * 1e3  # this process's CPU: with one thread, one core's
                 ok = ans is not None and ans.status == Status.OK and ans.T_CO is not None
-                row = {"scene": f.scene, "frame": f.frame_id, "draw": d, "status": status, "ms": ms,
+                row = {"scene": f.scene, "frame": f.frame_id, "draw": d, "status": status, "ms": ms, "cpu_ms": cpu_ms,
+                       "confidence": None if ans is None else float(ans.confidence),
                        "proj_px": metrics.proj_px(ans.T_CO, f.T_gt, camera, pts) if ok else None,
                        "add_m": metrics.add_m(ans.T_CO, f.T_gt, pts) if ok else None,
                        "prior_proj_px": metrics.proj_px(prior, f.T_gt, camera, pts) if prior is not None else None,
@@ -191,6 +193,7 @@ def summarise(rows: list[dict], diameter_m: float) -> dict:
     add = np.array([r["add_m"] if r["add_m"] is not None else np.inf for r in rows])
     prior = [r["prior_proj_px"] for r in rows if r["prior_proj_px"] is not None]
     ms = np.array([r["ms"] for r in rows])
+    cpu_ms = np.array([r["cpu_ms"] for r in rows])
     nees_values = [r["nees"] for r in rows if r["nees"] is not None]
     return {
         "answers": len(rows), "ok": int(np.isfinite(proj).sum()),
@@ -199,6 +202,7 @@ def summarise(rows: list[dict], diameter_m: float) -> dict:
         "prior_share_proj_5px": float(np.mean(np.array(prior) < 5.0)) if prior else None,
         "prior_median_proj_px": float(np.median(prior)) if prior else None,
         "ms_median": float(np.median(ms)), "ms_p90": float(np.percentile(ms, 90)),
+        "cpu_ms_median": float(np.median(cpu_ms)), "cpu_ms_p90": float(np.percentile(cpu_ms, 90)),
         "nees_mean": float(np.mean(nees_values)) if nees_values else None,
         "nees_median": float(np.median(nees_values)) if nees_values else None,
     }

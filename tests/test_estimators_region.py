@@ -1,0 +1,206 @@
+"""The region estimator: its viewpoint model, convergence on a rendered frame, the session store's
+bounds, and the chained estimator's routing."""
+
+import numpy as np
+import pytest
+
+from estimators.base import EstimateInput, EstimateOutput, Estimator, InvalidInput, Status
+from estimators.chained import ChainedEstimator
+from estimators.objects import load_object
+from estimators.region.estimator import RegionEstimator
+from estimators.region.histograms import ColourHistograms
+from estimators.region.session_store import SessionStore
+from estimators.region.viewpoint_model import cached_viewpoint_model, look_at
+from estimators.registry import EstimatorRegistry
+from flextrack import assets
+from flextrack.geometry import metrics, se3, so3
+from flextrack.geometry.camera import PinholeCamera, project_model
+from flextrack.wire import diagonal_covariance
+
+CAMERA = PinholeCamera.linemod()
+SUBDIVISIONS = 2  # 162 views: enough for these tests, built in about 2 s
+
+
+@pytest.fixture(scope="module")
+def default_object():
+    return load_object("default", assets.default_object_model())
+
+
+@pytest.fixture(scope="module")
+def region(default_object, tmp_path_factory):
+    cache = tmp_path_factory.mktemp("region_cache")
+    # min_confidence 0.6: on clean renders a converged answer scores about 0.9, a lost one under 0.5
+    return RegionEstimator("region", {"default": default_object}, views_subdivisions=SUBDIVISIONS, cache_dir=cache,
+                           min_confidence=0.6)
+
+
+def silhouette(obj, T_CO, camera=CAMERA, supersample=4):
+    """The object's filled silhouette, `supersample` times finer than the camera's pixels."""
+    import cv2
+
+    s = supersample
+    uv = project_model(camera, T_CO, obj.vertices)
+    mask = np.zeros((camera.height * s, camera.width * s), np.uint8)
+    for tri in np.round((uv * s) * 16).astype(np.int32)[obj.faces]:
+        cv2.fillConvexPoly(mask, tri, 1, lineType=cv2.LINE_8, shift=4)
+    return mask
+
+
+def test_viewpoint_model_points_lie_on_the_silhouette_boundary(region, default_object):
+    model = region.viewpoint_model("default")
+    assert model.points.shape == (162, 200, 3) and model.normals.shape == (162, 200, 3)
+    import cv2
+
+    for view in (0, 40, 100, 161):
+        R, t = look_at(model.directions[view], model.center, 0.6)
+        T = se3.make(R, t)
+        s = 4
+        mask = silhouette(default_object, T, supersample=s)
+        dist_out = cv2.distanceTransform(1 - mask, cv2.DIST_L2, 3)
+        dist_in = cv2.distanceTransform(mask, cv2.DIST_L2, 3)
+        uv = project_model(CAMERA, T, model.points[view]) * s
+        x, y = np.round(uv).astype(int).T
+        boundary_px = np.maximum(dist_out[y, x], dist_in[y, x]) / s  # distance to the outline, camera px
+        assert np.median(boundary_px) < 0.5 and np.percentile(boundary_px, 95) < 1.5, view
+        # normals point outwards: a step along one leaves the silhouette
+        n_uv = project_model(CAMERA, T, model.points[view] + 0.004 * model.normals[view]) * s
+        xo, yo = np.round(n_uv).astype(int).T
+        assert np.mean(mask[yo.clip(0, mask.shape[0] - 1), xo.clip(0, mask.shape[1] - 1)] == 0) > 0.9
+
+
+def test_viewpoint_model_is_cached_on_disk(default_object, tmp_path):
+    a = cached_viewpoint_model(default_object.vertices, default_object.faces, tmp_path, subdivisions=1, n_points=50)
+    assert len(list(tmp_path.glob("viewpoints_*.npz"))) == 1
+    b = cached_viewpoint_model(default_object.vertices, default_object.faces, tmp_path, subdivisions=1, n_points=50)
+    np.testing.assert_allclose(a.points, b.points, atol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def rendered_frame(region, default_object):
+    """The default object rendered at a pose on the model's view sphere, over a textured background."""
+    from flextrack.simulator.render import Renderer
+
+    model = region.viewpoint_model("default")
+    R, t = look_at(model.directions[30], model.center, 0.8)
+    T = se3.make(so3.exp(np.array([0.0, 0.0, 0.3])) @ R, so3.exp(np.array([0.0, 0.0, 0.3])) @ t)  # rolled
+    with Renderer(CAMERA, default_object.model_path) as renderer:
+        frame = renderer.render(T)
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[0:CAMERA.height, 0:CAMERA.width]
+    background = np.stack([80 + 60 * np.sin(xx / 23.0 + c) * np.cos(yy / 31.0 - c) for c in (0.0, 1.3, 2.6)], axis=2)
+    background += rng.normal(0, 6, background.shape)
+    image = np.where(frame.mask[..., None], frame.rgb, np.clip(background, 0, 255)).astype(np.uint8)
+    return image, T
+
+
+def perturbed(T, rng, sigma_m, sigma_deg):
+    d_theta, d_t = rng.normal(0, np.radians(sigma_deg), 3), rng.normal(0, sigma_m, 3)
+    return se3.make(so3.exp(-d_theta) @ T[:3, :3], T[:3, 3] - d_t)
+
+
+def test_region_converges_from_a_perturbed_prior_on_a_rendered_frame(region, rendered_frame, default_object):
+    image, T = rendered_frame
+    rng = np.random.default_rng(0)
+    cov = diagonal_covariance(np.radians(5.0), 0.01)
+    before, after, refused = [], [], 0
+    for i in range(8):
+        prior = perturbed(T, rng, 0.01, 5.0)
+        out = region.estimate(EstimateInput(frame_id=i, capture_time_ns=0, camera=CAMERA, image=image,
+                                            prior_T_CO=prior, prior_covariance=cov))
+        before.append(metrics.proj_px(prior, T, CAMERA, default_object.vertices))
+        if out.status != Status.OK:  # lost, and said so: the colours do not fit the outline
+            assert out.status == Status.OBJECT_NOT_FOUND and out.confidence < 0.6, out.message
+            refused += 1
+            continue
+        after.append(metrics.proj_px(out.T_CO, T, CAMERA, default_object.vertices))
+        assert out.covariance.shape == (6, 6) and np.all(np.linalg.eigvalsh(out.covariance) > 0)
+        assert 0.6 <= out.confidence <= 1
+    assert np.median(before) > 4.0  # the priors were off by several pixels ...
+    assert max(after) < 2.0, after  # ... every answer is within 2 px
+    # a new session learns its colours off the prior's outline; from a prior 10+ px off (a third of
+    # these) that fails now and then, and the answer says so (docs/region.md)
+    assert refused <= 2, (before, after)
+
+
+def test_region_refuses_a_request_without_a_prior(region, rendered_frame):
+    image, _ = rendered_frame
+    with pytest.raises(InvalidInput, match="prior"):
+        region.estimate(EstimateInput(frame_id=0, capture_time_ns=0, camera=CAMERA, image=image))
+
+
+def test_sessions_keep_their_own_histograms(region, rendered_frame):
+    image, T = rendered_frame
+    for session in ("a", "b"):
+        region.estimate(EstimateInput(frame_id=0, capture_time_ns=0, session_id=session, camera=CAMERA, image=image,
+                                      prior_T_CO=T, prior_covariance=diagonal_covariance(0.05, 0.01)))
+    a, fresh_a = region.sessions.get(("a", "default"))
+    b, fresh_b = region.sessions.get(("b", "default"))
+    assert not fresh_a and not fresh_b and a is not b and a.initialised
+    c, fresh_c = region.sessions.get(("never seen", "default"))
+    assert fresh_c and not c.initialised  # an unknown session starts fresh
+
+
+def test_session_store_stays_bounded_in_count_and_age():
+    now = [0.0]
+    store = SessionStore(lambda: ColourHistograms(8), max_sessions=100, max_age_s=60.0, clock=lambda: now[0])
+    for i in range(5000):
+        now[0] += 0.01
+        store.get((f"session-{i}", "default"))
+        assert len(store._entries) <= 100
+    assert len(store) == 100
+    assert ("session-4999", "default") in store and ("session-0", "default") not in store  # LRU evicted
+    store.get(("session-4900", "default"))  # used again: now the most recent
+    now[0] += 30.0
+    store.get(("late", "default"))
+    now[0] += 45.0  # everything but 'late' and 'session-4900'... is over 60 s old now
+    assert len(store) == 1 and ("late", "default") in store
+    now[0] += 61.0
+    assert len(store) == 0
+
+
+class Recorder(Estimator):
+    """Answers with a fixed status and remembers what it was asked."""
+
+    kind = "recorder"
+    uses_image = True
+
+    def __init__(self, name, status=Status.OK):
+        super().__init__(name, ["default"])
+        self.status, self.calls = status, []
+
+    def estimate(self, inp):
+        self.calls.append(inp.frame_id)
+        return EstimateOutput(self.status, np.eye(4) if self.status == Status.OK else None)
+
+
+def test_chained_routes_by_prior_and_falls_back_after_a_loss():
+    glob, local = Recorder("global"), Recorder("local")
+    chained = ChainedEstimator("chained", glob, local, max_prior_deg=20.0, max_prior_m=0.05)
+    prior = se3.make(np.eye(3), np.array([0.0, 0.0, 0.6]))
+    ask = lambda i, **kw: chained.estimate(EstimateInput(frame_id=i, capture_time_ns=0, **kw))
+    ask(1)  # no prior: the first pose
+    ask(2, prior_T_CO=prior, prior_covariance=diagonal_covariance(np.radians(5), 0.01))
+    ask(3, prior_T_CO=prior)  # no covariance: the local estimator's default applies
+    ask(4, prior_T_CO=prior, prior_covariance=diagonal_covariance(np.radians(40), 0.01))  # too uncertain
+    ask(5, prior_T_CO=se3.make(np.eye(3), np.array([0.0, 0.0, -0.6])))  # behind the camera
+    assert glob.calls == [1, 4, 5] and local.calls == [2, 3]
+    local.status = Status.OBJECT_NOT_FOUND  # lost: the global estimator is asked
+    out = ask(6, prior_T_CO=prior)
+    assert local.calls[-1] == 6 and glob.calls[-1] == 6 and out.status == Status.OK and "global" in out.stage_ms
+    no_fallback = ChainedEstimator("c2", glob, local, fallback=False)
+    assert no_fallback.estimate(EstimateInput(frame_id=7, capture_time_ns=0, prior_T_CO=prior)).status \
+        == Status.OBJECT_NOT_FOUND
+
+
+def test_default_config_serves_region_and_the_chained_estimator():
+    registry = EstimatorRegistry.from_config(assets.default_config_path())
+    assert {"pvnet", "region", "pvnet_region"} <= set(registry.names())
+    chained = registry.get("pvnet_region")
+    assert chained.kind == "chained" and chained.global_estimator is registry.get("pvnet")
+    assert chained.local_estimator is registry.get("region") and chained.uses_image
+
+
+def test_chained_config_must_name_estimators_declared_above():
+    doc = {"estimators": [{"name": "c", "kind": "chained", "params": {"global": "a", "local": "b"}}]}
+    with pytest.raises(ValueError, match="not declared above"):
+        EstimatorRegistry.from_dict(doc, assets.default_config_path().parent)
