@@ -1,16 +1,32 @@
-"""Every knob of the tracker core in one plain dataclass (defaults follow the paper where it gives one)."""
+"""Every knob of the tracker core in one plain dataclass (defaults follow the paper where it gives one).
+
+`fusion` picks the refinement: "filter" (the default: an error-state Kalman filter, its options in
+`filter`, nothing tuned per backend) or "paper" (the paper's PRM + BSCM with the gains below, kept
+for the paper's tables and the ablation). The PIA, the request policy and initialisation's window
+are shared.
+"""
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields
+
+from client_sdk.eskf.options import FilterOptions
 
 INTEGRATORS = ("paper", "midpoint")
+FUSIONS = ("filter", "paper")
+PRESETS = ("filter", "paper")
 
 
 @dataclass
 class TrackerOptions:
-    """Options of `client_sdk.Tracker`; invalid values raise ValueError when the object is built."""
+    """Options of the tracker core (`client_sdk.create_tracker`); invalid values raise ValueError when built."""
+
+    fusion: str = "filter"
+    """"filter": the error-state Kalman filter (`client_sdk.eskf`, options in `filter`). "paper": the
+    paper's PRM and BSCM (the options from `integrator` to `bscm_max_interval_s` below)."""
+    filter: FilterOptions = field(default_factory=FilterOptions)
+    """The filter's noise models, initial uncertainties, gate and status threshold."""
 
     # --- PPM: propagation ---
     integrator: str = "paper"
@@ -113,13 +129,17 @@ class TrackerOptions:
     """Recent IMU samples in `state_bytes()`: 176 makes the blob about 10 kB, as the paper sends."""
 
     def __post_init__(self) -> None:
+        if self.fusion not in FUSIONS:
+            raise ValueError(f"fusion must be one of {FUSIONS}, got {self.fusion!r}")
+        if not isinstance(self.filter, FilterOptions):
+            raise TypeError(f"filter must be FilterOptions, got {type(self.filter).__name__}")
         if self.integrator not in INTEGRATORS:
             raise ValueError(f"integrator must be one of {INTEGRATORS}, got {self.integrator!r}")
         if self.fps is not None and not (math.isfinite(self.fps) and self.fps > 0):
             raise ValueError(f"fps must be positive or None, got {self.fps!r}")
         for f in fields(self):
             value = getattr(self, f.name)
-            if isinstance(value, bool) or f.name in ("integrator", "fps"):
+            if isinstance(value, bool) or f.name in ("integrator", "fps", "fusion", "filter"):
                 continue
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{f.name} must be a finite number >= 0, got {value!r}")
@@ -135,29 +155,10 @@ class TrackerOptions:
 
 
 def preset(name: str) -> TrackerOptions:
-    """Named option sets. "paper": the paper's PRM (each backend pose resets the state; BSCM with the
-    damped default gains). "ours": the backend pose blended in half way (`pose_gain` 0.5: a fixed-gain
-    complementary filter that averages a noisy backend over ~3 responses instead of resetting to
-    it), gross backend errors gated (`backend_gate_px` 50), and the biases averaged over ~5-10 s
-    (gains 0.005 gyro, 0.01 accel at ~20 responses/s): IMU biases drift over minutes, while one
-    noisy response's rotation drift / dt is noisy by ~0.1 rad/s and V_bias / dt by ~1.7 m/s^2.
-    "vision": "ours" for a backend whose orientation is off by degrees (a learned network): gravity
-    kept in the body frame across corrections (`gravity_follow` 0.95), trusting the gyro over the
-    backend's orientation, and no gyro-bias updates from BSCM (`gyro_bias_gain` 0: a rotation drift
-    measured against such a backend is noise, and the bias it wrote walked the body-frame gravity
-    off; the still initialisation's estimate is kept), but each pose taken whole (`pose_gain` 1:
-    the pvnet estimator's poses, refined on the object's outline, are within a pixel, and blending
-    them half way only kept half the drift since the last one), and velocity and accelerometer bias
-    corrected at once (`velocity_gain` 1, `accel_bias_gain` 0.2): such a backend answers ~5 times a
-    second, not ~20, so the IMU carries each pose 0.2-0.4 s, where a velocity error left to decay
-    over ten answers costs tens of pixels; the poses are accurate across the image (their error is
-    in depth), so one answer's V_avg is good enough to take whole. With an accurate backend and a
-    gyro bias left to estimate, that trust in the gyro is misplaced. docs/tracker.md has the sweeps."""
-    if name == "paper":
+    """Named option sets: "filter" (the default for every backend) and "paper" (the paper's PRM with
+    BSCM's damped default gains: each backend pose resets the state)."""
+    if name == "filter":
         return TrackerOptions()
-    if name == "ours":
-        return TrackerOptions(pose_gain=0.5, gyro_bias_gain=0.005, accel_bias_gain=0.01, backend_gate_px=50.0)
-    if name == "vision":
-        return replace(preset("ours"), pose_gain=1.0, gravity_follow=0.95, gyro_bias_gain=0.0, velocity_gain=1.0,
-                       accel_bias_gain=0.2)
-    raise ValueError(f"unknown tracker preset {name!r}: 'paper', 'ours' or 'vision'")
+    if name == "paper":
+        return TrackerOptions(fusion="paper")
+    raise ValueError(f"unknown tracker preset {name!r}: one of {PRESETS}")

@@ -85,3 +85,15 @@ def decode(blob: bytes) -> tuple[TrackerState, np.ndarray]:
     imu = np.frombuffer(blob, dtype="<f8", offset=_HEADER.size + 8 * STATE_FLOATS).astype(float)
     state = TrackerState(t_ns, v[0:9].reshape(3, 3), v[9:12], v[12:15], v[15:18], v[18:21], v[21:24])
     return state, imu.reshape(rows, IMU_ROW)
+
+
+def blob(st: TrackerState | None, now_ns: int | None, buffer, n_samples: int) -> bytes:
+    """`encode` of a tracker's state (identity / zeros at `now_ns` before initialisation) and the newest
+    `n_samples` samples of its `ImuBuffer`, their times relative to the state's."""
+    if st is None:
+        z = np.zeros(3)
+        st = TrackerState(now_ns or 0, np.eye(3), z, z, z, z, z)
+    times, samples = buffer.recent(n_samples)
+    rows = np.array(samples, dtype=float).reshape(-1, 7)
+    rows[:, 0] = (np.array(times, dtype=np.int64) - st.t_ns) * 1e-9  # exact in integers first
+    return encode(st, rows)

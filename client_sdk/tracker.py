@@ -30,40 +30,20 @@ while tracking is FINE is not applied at all (GATED), up to `backend_gate_reject
 
 from __future__ import annotations
 
-import operator
-from dataclasses import dataclass
-from math import isfinite, sqrt
+from math import sqrt
 
 import numpy as np
 
-from client_sdk import initialization
 from client_sdk import state as state_codec
 from client_sdk.imu_buffer import ImuBuffer
 from client_sdk.inspection import PoseInspector, Status
 from client_sdk.options import TrackerOptions
 from client_sdk.propagation import INTEGRATOR_STEPS, propagate
-from client_sdk.refinement import BscmResult, RefinementRequest, RequestBook, ResponseOutcome, blend_pose, bscm
+from client_sdk.refinement import BscmResult, ResponseOutcome, blend_pose, bscm
 from client_sdk.state import TrackerState
+from client_sdk.tracker_base import FrameResult, TrackerBase, as_int, check_rigid, imu_sample
 from flextrack.geometry import se3
 from flextrack.geometry.camera import PinholeCamera
-
-
-@dataclass(frozen=True)
-class FrameResult:
-    t_ns: int
-    T_CO: np.ndarray | None  # the propagated pose (None only while INITIALIZING); trust it when FINE
-    status: Status
-    request: RefinementRequest | None  # when set, the shell sends this frame to the backend
-
-
-def _as_int(value, name: str, what: str = "an integer number of nanoseconds") -> int:
-    # ValueError for every bad input (not TypeError), as the API promises the shells
-    if isinstance(value, bool):
-        raise ValueError(f"{name} must be {what}, got {value!r}")  # noqa: TRY004
-    try:
-        return operator.index(value)
-    except TypeError:
-        raise ValueError(f"{name} must be {what}, got {value!r}") from None
 
 
 def _rot(R: tuple, u: tuple) -> tuple:
@@ -78,33 +58,15 @@ def _rot_t(R: tuple, u: tuple) -> tuple:
             R[2] * u[0] + R[5] * u[1] + R[8] * u[2])
 
 
-def _check_rigid(T, name: str) -> list[float]:
-    """The 16 entries (row-major) of a rigid 4x4 transform; ValueError otherwise. Plain-float checks:
-    this runs on every backend response, where numpy's allclose/det would cost tens of microseconds."""
-    T = np.asarray(T, dtype=float)
-    if T.shape != (4, 4):
-        raise ValueError(f"{name} must be a 4x4 matrix, got shape {T.shape}")
-    m = T.ravel().tolist()
-    if not isfinite(sum(m)):
-        raise ValueError(f"{name} must be finite")
-    r0, r1, r2 = m[0:3], m[4:7], m[8:11]
-    dots = [sum(a * b for a, b in zip(u, v)) for u, v in ((r0, r0), (r1, r1), (r2, r2), (r0, r1), (r0, r2), (r1, r2))]
-    det = (r0[1] * r1[2] - r0[2] * r1[1]) * r2[0] + (r0[2] * r1[0] - r0[0] * r1[2]) * r2[1] + \
-        (r0[0] * r1[1] - r0[1] * r1[0]) * r2[2]
-    if max(abs(d - 1.0) for d in dots[:3]) > 1e-4 or max(abs(d) for d in dots[3:]) > 1e-4 or det < 0 or \
-            m[12:16] != [0.0, 0.0, 0.0, 1.0]:
-        raise ValueError(f"{name} must be a rigid transform (orthonormal rotation, last row 0 0 0 1)")
-    return m
-
-
-class Tracker:
+class Tracker(TrackerBase):
     """The paper's device side: PPM, PIM (PIA) and PRM (BSCM) around one state. See module doc."""
 
     def __init__(self, options: TrackerOptions | None, camera: PinholeCamera, T_BC: np.ndarray,
                  bbox_corners_O: np.ndarray) -> None:
+        super().__init__()
         self.options = options if options is not None else TrackerOptions()
-        o = self.options
-        T_CB = se3.inverse(np.array(_check_rigid(T_BC, "T_BC")).reshape(4, 4))
+        self._assess_options = o = self.options
+        T_CB = se3.inverse(np.array(check_rigid(T_BC, "T_BC")).reshape(4, 4))
         # plain floats: the per-frame and per-response pose conversions are written out on them
         self._R_CB_f, self._t_CB_f = tuple(T_CB[:3, :3].ravel().tolist()), tuple(T_CB[:3, 3].tolist())
         self.camera = camera
@@ -112,31 +74,22 @@ class Tracker:
                                        o.base_rate, o.near_m)
         self._step = INTEGRATOR_STEPS[o.integrator]
         self._buf = ImuBuffer(round(o.imu_buffer_s * 1e9))
-        self._book = RequestBook()
         self._c: tuple | None = None  # (b_g, b_a, g_O); None until initialised
         self._anchor_t: int | None = None  # the last state set from a backend pose ...
         self._anchor_x: tuple | None = None  # ... (nominal tuple) at its capture time
         self._ref: tuple[int, tuple] | None = None  # (t_ns, p_OB) of the last backend pose, for BSCM
         self._velocity_known = False  # False after a PRM reset: the next BSCM re-estimates v outright
-        self._init_est: initialization.InitEstimate | None = None
         self._last_frame_t: int | None = None
         self._last_uv: np.ndarray | None = None
         self._corrected = False  # a backend pose was applied since the last frame
         self._failing = False  # the last frame failed the PIA (the PRM was reset on entering that)
         self._gated = 0  # backend poses gated in a row
-        self.status = Status.INITIALIZING
-        self.status_detail = "initializing: waiting for IMU samples"
         self.last_bscm: BscmResult | None = None
-        self.outcomes = {k: 0 for k in ResponseOutcome}  # responses seen, by outcome
 
     # ------------------------------------------------------------------ properties
     @property
     def initialized(self) -> bool:
         return self._c is not None
-
-    @property
-    def in_flight(self) -> RefinementRequest | None:
-        return self._book.in_flight
 
     @property
     def now_ns(self) -> int | None:
@@ -160,19 +113,10 @@ class Tracker:
 
         ValueError, with no state change, for non-finite values or a time not after the previous one.
         """
-        t = _as_int(t_ns, "t_ns")
-        try:
-            gx, gy, gz = (float(v) for v in gyro)
-            ax, ay, az = (float(v) for v in accel)
-        except (TypeError, ValueError):
-            raise ValueError("gyro and accel must each be 3 numbers") from None
-        if not isfinite(gx + gy + gz + ax + ay + az):
-            raise ValueError(f"IMU sample at {t} ns is not finite: gyro {gyro!r}, accel {accel!r}")
         buf = self._buf
         last = buf.last_t_ns
-        if last is not None and t <= last:
-            raise ValueError(f"IMU sample at {t} ns is not after the previous one at {last} ns")
-        s = (t, gx, gy, gz, ax, ay, az)
+        s = imu_sample(t_ns, gyro, accel, last)
+        t = s[0]
         x = None
         if self._c is not None:
             if last is None or self._anchor_t >= last:  # first sample after a backend pose
@@ -220,7 +164,7 @@ class Tracker:
         """T_CO at t_ns: re-propagated from the stored state before it, extrapolated past the newest
         IMU sample with its rates held. None before initialisation; ValueError for times older than
         the IMU buffer or before tracking started."""
-        t = _as_int(t_ns, "t_ns")
+        t = as_int(t_ns, "t_ns")
         if self._c is None:
             return None
         x = self._state_at(t)
@@ -231,7 +175,7 @@ class Tracker:
     # ------------------------------------------------------------------ PIM + PRM requests
     def add_frame(self, t_ns: int) -> FrameResult:
         """The pose at this frame, its PIA status, and the backend request the PRM wants sent (if any)."""
-        t = _as_int(t_ns, "t_ns")
+        t = as_int(t_ns, "t_ns")
         if self._last_frame_t is not None and t <= self._last_frame_t:
             raise ValueError(f"frame at {t} ns is not after the previous one at {self._last_frame_t} ns")
         fps = self.options.fps
@@ -276,44 +220,21 @@ class Tracker:
             return None
         return self.inspector.project(self._T_CO(x))
 
-    def _initializing_frame(self, t: int) -> FrameResult:
-        request = None
-        if self._book.in_flight is None:
-            est, detail = initialization.assess(self._buf, t, self.options)
-            if est is not None:
-                self._init_est = est
-                request = self._book.issue(t, "init")
-        else:
-            detail = f"initializing: waiting for the first backend pose (request {self._book.in_flight.request_id})"
-        self.status, self.status_detail = Status.INITIALIZING, detail
-        return FrameResult(t, None, Status.INITIALIZING, request)
-
     # ------------------------------------------------------------------ PRM responses
-    def on_backend_failure(self, request_id: int) -> bool:
-        """The shell lost this request (timeout, broken stream): the next frame asks again.
-        True when it was the live request, False when it was already stale."""
-        if not self._book.is_live(_as_int(request_id, "request_id", "an integer")):
-            return False
-        self._book.in_flight = None
-        return True
-
     def on_backend_response(self, request_id: int, capture_t_ns: int, T_CO: np.ndarray | None,
-                            ok: bool = True) -> ResponseOutcome:
+                            ok: bool = True, covariance: np.ndarray | None = None) -> ResponseOutcome:
         """Apply the backend's T_CO at capture time t0: state at t0 from it, BSCM, re-propagation to now.
+        The paper's method has no use for the answer's `covariance` (the filter's has).
 
         ValueError, with no state change, when the capture time differs from the request's frame
         time or the pose is not a rigid transform.
         """
-        rid = _as_int(request_id, "request_id", "an integer")
-        t0 = _as_int(capture_t_ns, "capture_t_ns")
-        if not self._book.is_live(rid):
-            return self._outcome(ResponseOutcome.STALE, None)
-        req = self._book.in_flight
-        if t0 != req.frame_t_ns:
-            raise ValueError(f"response {rid} is for capture time {t0} ns, but the request was for {req.frame_t_ns} ns")
+        t0 = self._answered(request_id, capture_t_ns)
+        if t0 is None:
+            return ResponseOutcome.STALE
         usable = ok and T_CO is not None
         if usable:
-            T_CO = _check_rigid(T_CO, "T_CO")
+            T_CO = check_rigid(T_CO, "T_CO")
         self._book.in_flight = None
         if not usable:
             return self._outcome(ResponseOutcome.REJECTED, "backend found no pose; asking again")
@@ -425,22 +346,9 @@ class Tracker:
         u = tuple(A[k] * d[0] + A[3 + k] * d[1] + A[6 + k] * d[2] for k in range(3))
         return R, p, u
 
-    def _outcome(self, outcome: ResponseOutcome, detail: str | None) -> ResponseOutcome:
-        self.outcomes[outcome] += 1
-        if detail is not None:
-            self.status_detail = detail
-        return outcome
-
     # ------------------------------------------------------------------ wire state
     def state_bytes(self) -> bytes:
         """The state and the newest `state_imu_samples` IMU samples, float64 (~10 kB by default),
         for the transport to attach as `client_state`; `client_sdk.state.decode` reads it back.
         Before initialisation the state part is identity / zeros at the newest IMU time."""
-        st = self.state
-        if st is None:
-            z = np.zeros(3)
-            st = TrackerState(self.now_ns or 0, np.eye(3), z, z, z, z, z)
-        times, samples = self._buf.recent(self.options.state_imu_samples)
-        rows = np.array(samples, dtype=float).reshape(-1, 7)
-        rows[:, 0] = (np.array(times, dtype=np.int64) - st.t_ns) * 1e-9  # exact in integers first
-        return state_codec.encode(st, rows)
+        return state_codec.blob(self.state, self.now_ns, self._buf, self.options.state_imu_samples)

@@ -25,6 +25,7 @@ from typing import Self
 import grpc
 import numpy as np
 
+from flextrack import wire
 from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
 
@@ -52,13 +53,25 @@ class TransportOptions:
 def make_request(*, frame_id: int, capture_time_ns: int, session_id: str = "", estimator: str = "",
                  object_id: str = "", sequence: str = "", image: bytes | None = None,
                  encoding: int = pb.Image.JPEG, width: int = 0, height: int = 0,
-                 intrinsics: pb.Intrinsics | None = None, client_state: bytes = b"") -> pb.EstimateRequest:
-    """An `EstimateRequest` for one frame (`image=None`: no image at all)."""
+                 intrinsics: pb.Intrinsics | None = None, client_state: bytes = b"",
+                 prior: pb.PosePrior | None = None) -> pb.EstimateRequest:
+    """An `EstimateRequest` for one frame (`image=None`: no image at all; `prior`: see `prior_of`)."""
     return pb.EstimateRequest(
         session_id=session_id, frame_id=int(frame_id), capture_time_ns=int(capture_time_ns),
         estimator=estimator, object_id=object_id, sequence=sequence,
         image=None if image is None else pb.Image(encoding=encoding, data=image, width=width, height=height),
-        intrinsics=intrinsics, client_state=client_state)
+        intrinsics=intrinsics, client_state=client_state, prior=prior)
+
+
+def prior_of(tracker, capture_time_ns: int) -> pb.PosePrior | None:
+    """The tracker's predicted T_CO at the capture time and its covariance, for the request's `prior`
+    (None before initialisation; no covariance from a tracker that keeps none: the paper's)."""
+    T_CO = tracker.pose_at(capture_time_ns)
+    if T_CO is None:
+        return None
+    covariance_at = getattr(tracker, "pose_covariance_at", None)
+    cov = covariance_at(capture_time_ns) if covariance_at is not None else None
+    return pb.PosePrior(pose=wire.pose_to_pb(T_CO), covariance=wire.covariance_to_pb(cov))
 
 
 PUSHBACK_KEY = "grpc-retry-pushback-ms"  # gRPC's trailer for "retry no sooner than this" (gRFC A6)

@@ -69,7 +69,7 @@ def test_blend_pose_goes_part_way():
 def test_biases_appearing_after_initialisation_are_estimated(integrator):
     """GT backend, 50 ms latency, one request in flight: constant biases switched on at 1 s."""
     m = Motion()
-    run = drive(m, TrackerOptions(integrator=integrator), duration_s=10.0, b_g=B_G, b_a=B_A, bias_from_s=1.0)
+    run = drive(m, TrackerOptions(fusion="paper", integrator=integrator), duration_s=10.0, b_g=B_G, b_a=B_A, bias_from_s=1.0)
     st = run.tracker.state
     assert np.linalg.norm(st.b_g - B_G) < 0.1 * np.linalg.norm(B_G)
     assert np.linalg.norm(st.b_a - B_A) < 0.2 * np.linalg.norm(B_A)
@@ -80,7 +80,7 @@ def test_accelerometer_bias_present_at_start_is_tracked_as_a_whole():
     """A bias present while still is indistinguishable from gravity: g_O absorbs it at first, and
     BSCM keeps the *sum* right: R (b_a - b_a_est) + (g_O_est - g_O) stays small."""
     m = Motion()
-    run = drive(m, TrackerOptions(), duration_s=8.0, b_g=B_G, b_a=B_A)
+    run = drive(m, TrackerOptions(fusion="paper", ), duration_s=8.0, b_g=B_G, b_a=B_A)
     st = run.tracker.state
     R, _ = m.body_pose(st.t_ns * 1e-9)
     residual = R @ (B_A - st.b_a) + st.g_O - G_O
@@ -91,7 +91,7 @@ def test_accelerometer_bias_present_at_start_is_tracked_as_a_whole():
 @pytest.mark.parametrize("integrator, fps", [("paper", 30.0), ("paper", 120.0), ("midpoint", 60.0)])
 def test_gt_backend_noise_free_imu_stays_below_half_a_pixel(integrator, fps):
     m = Motion()
-    run = drive(m, TrackerOptions(integrator=integrator), duration_s=6.0, fps=fps, b_g=B_G, b_a=B_A)
+    run = drive(m, TrackerOptions(fusion="paper", integrator=integrator), duration_s=6.0, fps=fps, b_g=B_G, b_a=B_A)
     err = _errors(run, m)
     assert len(err) > 3 * fps and err.max() < 0.5
     assert set(run.statuses) == {Status.INITIALIZING, Status.FINE}
@@ -99,13 +99,13 @@ def test_gt_backend_noise_free_imu_stays_below_half_a_pixel(integrator, fps):
 
 def test_zero_latency_gt_backend_is_near_exact():
     m = Motion()
-    run = drive(m, TrackerOptions(integrator="midpoint"), duration_s=4.0, latency_s=0.0)
+    run = drive(m, TrackerOptions(fusion="paper", integrator="midpoint"), duration_s=4.0, latency_s=0.0)
     assert _errors(run, m).max() < 0.01
 
 
 def test_velocity_is_estimated():
     m = Motion()
-    run = drive(m, TrackerOptions(), duration_s=6.0, b_g=B_G, b_a=B_A, bias_from_s=1.0)
+    run = drive(m, TrackerOptions(fusion="paper", ), duration_s=6.0, b_g=B_G, b_a=B_A, bias_from_s=1.0)
     st = run.tracker.state
     t, h = st.t_ns * 1e-9, 1e-5
     v_true = (m.body_pose(t + h)[1] - m.body_pose(t - h)[1]) / (2 * h)
@@ -129,7 +129,7 @@ def test_noisy_backend_stays_near_its_own_error():
             own.append(proj_px(N, T, CAMERA, BOX_O))
             return N
 
-        run = drive(m, TrackerOptions(bscm_imu_orientation=imu_orientation), duration_s=8.0, fps=120.0,
+        run = drive(m, TrackerOptions(fusion="paper", bscm_imu_orientation=imu_orientation), duration_s=8.0, fps=120.0,
                     answer=answer, gyro_sigma=6.63e-5 * np.sqrt(200), accel_sigma=7.35e-4 * np.sqrt(200), seed=2)
         mean[imu_orientation] = _errors(run, m).mean()
         floor = np.mean(own)
@@ -143,7 +143,7 @@ def test_a_minimum_baseline_still_estimates_velocity_and_biases():
     resets the pose, BSCM waits for that baseline (keeping its reference): velocity and biases are
     still estimated and a GT backend is still tracked to a fraction of a pixel."""
     m = Motion()
-    run = drive(m, TrackerOptions(bscm_min_interval_s=0.1), duration_s=6.0, fps=120.0, b_g=B_G, b_a=B_A,
+    run = drive(m, TrackerOptions(fusion="paper", bscm_min_interval_s=0.1), duration_s=6.0, fps=120.0, b_g=B_G, b_a=B_A,
                 bias_from_s=1.0)
     assert _errors(run, m)[len(run.poses) // 2:].mean() < 0.5
     st = run.tracker.state
@@ -151,59 +151,3 @@ def test_a_minimum_baseline_still_estimates_velocity_and_biases():
     v_true = (m.body_pose(t + h)[1] - m.body_pose(t - h)[1]) / (2 * h)
     assert np.linalg.norm(st.v_OB - v_true) < 0.01
     assert np.linalg.norm(st.b_g - B_G) < 0.005
-
-
-def _noisy_backend(m, sigma_deg: float, seed: int, sigma_m: float = 0.003):
-    """A backend answer(t): the true pose with Gaussian rotation (deg) and translation (m) noise per axis."""
-    rng = np.random.default_rng(seed)
-
-    def answer(t):
-        T = m.T_CO(t)
-        return se3.make(so3.exp(np.radians(sigma_deg) * rng.standard_normal(3)) @ T[:3, :3],
-                        T[:3, 3] + sigma_m * rng.standard_normal(3))
-
-    return answer
-
-
-def test_preset_ours_averages_a_noisy_backend_and_still_tracks_a_gt_one():
-    """"ours" (alpha-beta filter on the backend pose) beats the paper's reset with a backend noisy at
-    3 mm / 0.3 deg per axis, and stays below half a pixel with a GT backend and biases."""
-    from client_sdk.options import preset
-
-    m = Motion()
-    gt = drive(m, preset("ours"), duration_s=6.0, fps=120.0, b_g=B_G, b_a=B_A, bias_from_s=1.0)
-    assert _errors(gt, m)[len(gt.poses) // 2:].mean() < 0.5
-    mean = {}
-    for name in ("paper", "ours"):
-        run = drive(m, preset(name), duration_s=8.0, fps=120.0, answer=_noisy_backend(m, 0.3, seed=3), gyro_sigma=6.63e-5 * np.sqrt(200),
-                    accel_sigma=7.35e-4 * np.sqrt(200), seed=2)
-        mean[name] = _errors(run, m).mean()
-    assert mean["ours"] < 0.9 * mean["paper"]  # 2.03 vs 2.37 px here
-    with pytest.raises(ValueError, match="preset"):
-        preset("fastest")
-
-
-def test_preset_vision_keeps_gravity_through_a_backend_off_by_degrees():
-    """A learned backend's orientation is off by degrees: with g_O fixed each correction turns that
-    into a fake acceleration of ~9.81 sin(error); "vision" keeps the body-frame gravity instead."""
-    from client_sdk.options import preset
-
-    m = Motion()
-    mean = {}
-    for name in ("ours", "vision"):
-        run = drive(m, preset(name), duration_s=6.0, fps=30.0, latency_s=0.15, answer=_noisy_backend(m, 5.0, seed=5),
-                    seed=2)
-        mean[name] = _errors(run, m).mean()
-    assert mean["vision"] < 0.5 * mean["ours"], mean  # 7.0 vs 17.9 px here
-
-
-def test_preset_vision_corrects_velocity_at_once_behind_a_slow_backend():
-    """A vision backend answers ~5 times a second: the IMU carries each pose 0.2 s or more, so a
-    velocity or accelerometer-bias error left to decay over many answers costs tens of pixels
-    ("ours"' gains: ~15 px here). "vision" takes each answer's velocity whole."""
-    from client_sdk.options import preset
-
-    m = Motion()
-    run = drive(m, preset("vision"), duration_s=8.0, fps=30.0, latency_s=0.2, b_a=B_A, bias_from_s=1.0)
-    err = _errors(run, m)
-    assert err[len(err) // 2:].mean() < 1.0  # 0.34 px here

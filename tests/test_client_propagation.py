@@ -47,7 +47,7 @@ def test_midpoint_is_exact_for_constant_rates():
 def test_pure_propagation_follows_the_trajectory(integrator, max_mm):
     """One backend pose to initialise, then IMU only for ~3 s of motion with exact IMU readings."""
     m = Motion()
-    run = drive(m, TrackerOptions(integrator=integrator, backend_after_init=False), duration_s=4.0)
+    run = drive(m, TrackerOptions(fusion="paper", integrator=integrator, backend_after_init=False), duration_s=4.0)
     tr = run.tracker
     assert np.allclose(tr.state.g_O, G_O, atol=1e-6)  # gravity from the still start
     t = tr.now_ns
@@ -61,7 +61,7 @@ def test_midpoint_is_far_more_accurate_than_paper_integration():
     m = Motion()
     err = {}
     for integrator in ("paper", "midpoint"):
-        tr = drive(m, TrackerOptions(integrator=integrator, backend_after_init=False), duration_s=4.0).tracker
+        tr = drive(m, TrackerOptions(fusion="paper", integrator=integrator, backend_after_init=False), duration_s=4.0).tracker
         err[integrator] = te_mm(tr.pose_at(tr.now_ns), m.T_CO(tr.now_ns * 1e-9))
     assert err["midpoint"] < err["paper"] / 50
 
@@ -69,7 +69,7 @@ def test_midpoint_is_far_more_accurate_than_paper_integration():
 def test_pose_at_any_time_and_rate():
     """Output at 240 FPS (off the IMU grid) and at IMU times stays on the trajectory with a GT backend."""
     m = Motion()
-    tr = drive(m, TrackerOptions(), duration_s=4.0).tracker
+    tr = drive(m, TrackerOptions(fusion="paper", ), duration_s=4.0).tracker
     now = tr.now_ns
     times = np.arange(now - int(1.9e9), now, int(1e9 / 240))
     errs = [proj_px(tr.pose_at(int(t)), m.T_CO(t * 1e-9), CAMERA, BOX_O) for t in times]
@@ -82,7 +82,7 @@ def test_pose_at_any_time_and_rate():
 
 def test_pose_at_is_continuous_across_imu_samples():
     m = Motion()
-    tr = drive(m, TrackerOptions(integrator="midpoint"), duration_s=3.0).tracker
+    tr = drive(m, TrackerOptions(fusion="paper", integrator="midpoint"), duration_s=3.0).tracker
     t = tr.now_ns - 100_000_000
     t = t - t % 5_000_000  # an IMU sample time
     before, at, after = tr.pose_at(t - 1), tr.pose_at(t), tr.pose_at(t + 1)

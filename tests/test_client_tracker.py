@@ -70,10 +70,10 @@ def test_initialisation_statuses_and_first_pose():
 
 def test_initialisation_waits_for_a_still_device():
     m = Motion(still_s=0.0)  # moving from the start
-    run = drive(m, TrackerOptions(), duration_s=1.5)
+    run = drive(m, TrackerOptions(fusion="paper", ), duration_s=1.5)
     assert not run.tracker.initialized and "hold the device still" in run.tracker.status_detail
     assert all(r.request is None for r in run.results)
-    run = drive(m, TrackerOptions(init_require_still=False), duration_s=1.5)
+    run = drive(m, TrackerOptions(fusion="paper", init_require_still=False), duration_s=1.5)
     assert run.tracker.initialized
 
 
@@ -133,14 +133,14 @@ def test_bad_imu_and_frames_are_rejected_without_state_change():
 def test_same_events_give_identical_outputs():
     kw = {"duration_s": 3.0, "b_g": (0.002, 0.0, -0.001), "b_a": (0.02, 0.0, 0.01), "gyro_sigma": 1e-3,
           "accel_sigma": 1e-2, "seed": 4}
-    a, b = drive(Motion(), TrackerOptions(), **kw), drive(Motion(), TrackerOptions(), **kw)
+    a, b = drive(Motion(), TrackerOptions(fusion="paper", ), **kw), drive(Motion(), TrackerOptions(fusion="paper", ), **kw)
     assert [r.request for r in a.results] == [r.request for r in b.results]
     assert all(np.array_equal(x, y) for x, y in zip(a.poses, b.poses) if x is not None)
     assert a.statuses == b.statuses and a.tracker.state_bytes() == b.tracker.state_bytes()
 
 
 def test_state_bytes_are_about_10_kB_and_decode():
-    run = drive(Motion(), TrackerOptions(), duration_s=2.0)
+    run = drive(Motion(), TrackerOptions(fusion="paper", ), duration_s=2.0)
     blob = run.tracker.state_bytes()
     assert 9_000 < len(blob) < 11_000
     st, imu = state_codec.decode(blob)
@@ -155,7 +155,7 @@ def test_state_bytes_are_about_10_kB_and_decode():
 def test_response_resets_the_state_and_repropagates_the_buffer():
     """After a response, the state now == the backend pose at t0 propagated through the kept IMU."""
     m, log = Motion(), []
-    run = drive(m, TrackerOptions(), duration_s=3.0, b_g=(0.003, 0, 0), b_a=(0, 0.02, 0), imu_log=log)
+    run = drive(m, TrackerOptions(fusion="paper", ), duration_s=3.0, b_g=(0.003, 0, 0), b_a=(0, 0.02, 0), imu_log=log)
     tr = run.tracker
     req = tr.in_flight or tr.add_frame(int(run.times_ns[-1]) + MS).request
     t = log[-1][0]
@@ -179,7 +179,7 @@ def test_response_resets_the_state_and_repropagates_the_buffer():
 
 def test_wrong_pose_abandons_the_regular_request_and_sends_the_frame_at_once():
     m = Motion()
-    run = drive(m, TrackerOptions(), duration_s=3.0)
+    run = drive(m, TrackerOptions(fusion="paper", ), duration_s=3.0)
     tr = run.tracker
     t = tr.now_ns
     regular = tr.in_flight or tr.add_frame(int(run.times_ns[-1]) + MS).request
@@ -211,7 +211,7 @@ def test_tracking_lost_sends_one_request_at_a_time_and_recovers():
             return far
         return m.T_CO(t)
 
-    run = drive(m, TrackerOptions(), duration_s=3.0, answer=answer)
+    run = drive(m, TrackerOptions(fusion="paper", ), duration_s=3.0, answer=answer)
     lost = [i for i, s in enumerate(run.statuses) if s is Status.TRACKING_LOST]
     assert lost, "the far pose must be reported lost"
     reqs = [run.results[i].request for i in lost if run.results[i].request]
@@ -223,9 +223,9 @@ def test_tracking_lost_sends_one_request_at_a_time_and_recovers():
 def test_ablation_switches():
     m = Motion()
     kw = {"duration_s": 5.0, "b_g": (0.01, -0.02, 0.015), "b_a": (0.05, -0.08, 0.1), "bias_from_s": 1.0}
-    full = drive(m, TrackerOptions(), **kw)
-    no_bscm = drive(m, TrackerOptions(bscm=False, pia=False), **kw)
-    imu_only = drive(m, TrackerOptions(backend_after_init=False), **kw)
+    full = drive(m, TrackerOptions(fusion="paper", ), **kw)
+    no_bscm = drive(m, TrackerOptions(fusion="paper", bscm=False, pia=False), **kw)
+    imu_only = drive(m, TrackerOptions(fusion="paper", backend_after_init=False), **kw)
 
     def err(run):
         return np.mean([proj_px(T, m.T_CO(t * 1e-9), CAMERA, BOX_O) for t, T in zip(run.times_ns, run.poses)
@@ -339,11 +339,11 @@ def test_the_backend_gate_ignores_a_flipped_pose_and_gives_way_to_a_persistent_o
             return _flipped(m.T_CO(t))
         return m.T_CO(t)
 
-    gated = drive(m, TrackerOptions(backend_gate_px=50.0), duration_s=3.0, answer=one_flip)
+    gated = drive(m, TrackerOptions(fusion="paper", backend_gate_px=50.0), duration_s=3.0, answer=one_flip)
     assert gated.tracker.outcomes[ResponseOutcome.GATED] == 1
     assert set(gated.statuses) == {Status.INITIALIZING, Status.FINE}
     flips["n"] = 0
-    trusting = drive(m, TrackerOptions(), duration_s=3.0, answer=one_flip)  # the paper: applied
+    trusting = drive(m, TrackerOptions(fusion="paper", ), duration_s=3.0, answer=one_flip)  # the paper: applied
     assert trusting.tracker.outcomes[ResponseOutcome.GATED] == 0
 
     def worst(run):
@@ -354,7 +354,7 @@ def test_the_backend_gate_ignores_a_flipped_pose_and_gives_way_to_a_persistent_o
     for run in (gated, trusting):
         assert proj_px(run.poses[-1], m.T_CO(run.times_ns[-1] * 1e-9), CAMERA, BOX_O) < 0.5
     # a backend that keeps saying the same is believed after backend_gate_rejects poses
-    moved = drive(m, TrackerOptions(backend_gate_px=50.0), duration_s=3.0,
+    moved = drive(m, TrackerOptions(fusion="paper", backend_gate_px=50.0), duration_s=3.0,
                   answer=lambda t: _flipped(m.T_CO(t)) if t > 2.0 else m.T_CO(t))
     assert moved.tracker.outcomes[ResponseOutcome.GATED] == 2
     assert proj_px(moved.poses[-1], _flipped(m.T_CO(moved.times_ns[-1] * 1e-9)), CAMERA, BOX_O) < 2.0
@@ -372,7 +372,7 @@ def test_the_backend_gate_refuses_a_pose_behind_the_camera_without_failing():
             return se3.make(so3.exp(np.array([np.pi, 0.0, 0.0])), np.zeros(3)) @ m.T_CO(t)  # turned behind the camera
         return m.T_CO(t)
 
-    run = drive(m, TrackerOptions(backend_gate_px=50.0), duration_s=3.0, answer=once_behind)
+    run = drive(m, TrackerOptions(fusion="paper", backend_gate_px=50.0), duration_s=3.0, answer=once_behind)
     assert behind["n"] == 1 and run.tracker.outcomes[ResponseOutcome.GATED] == 1
     assert proj_px(run.poses[-1], m.T_CO(run.times_ns[-1] * 1e-9), CAMERA, BOX_O) < 0.5
 
@@ -387,7 +387,7 @@ def test_a_wrong_first_pose_is_overruled_and_gravity_re_anchored():
         first["t"] = first["t"] or t
         return _flipped(m.T_CO(t)) if t == first["t"] else m.T_CO(t)
 
-    run = drive(m, TrackerOptions(backend_gate_px=50.0), duration_s=4.0, answer=flipped_first)
+    run = drive(m, TrackerOptions(fusion="paper", backend_gate_px=50.0), duration_s=4.0, answer=flipped_first)
     assert run.tracker.outcomes[ResponseOutcome.GATED] >= 1
     g_O = run.tracker.state.g_O
     assert np.degrees(np.arccos(np.clip(g_O @ G_O / (np.linalg.norm(g_O) * np.linalg.norm(G_O)), -1, 1))) < 1.0

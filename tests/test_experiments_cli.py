@@ -17,7 +17,7 @@ def test_table2_on_short_sequences_writes_the_agreed_csv(tmp_path, capsys):
     assert main(["experiment", "table2", "--out", str(out), "--duration", "3", "--fps", "30", "--in-process"]) == 0
     rows = _csv(out / "table2.csv")
     assert list(rows[0]) == ["motion", "level", "fps", "backend", "seed", "pos_mm", "ori_deg", "proj_px",
-                             "paper_pos_mm", "paper_ori_deg", "paper_proj_px"]
+                             "paper_pos_mm", "paper_ori_deg", "paper_proj_px", "jitter_px", "nees_mean", "worst_fine_px"]
     assert len(rows) == 6 * 2  # six programs x two backends at one frame rate
     assert {(r["motion"], r["backend"]) for r in rows} == {(m, b) for m in ("translational", "circular")
                                                            for b in ("gt", "noisy")}
@@ -29,7 +29,7 @@ def test_table2_on_short_sequences_writes_the_agreed_csv(tmp_path, capsys):
     assert "Table 2 rerun" in (out / "table2.md").read_text()
     paper_rows = _csv(out / "table2_paper.csv")  # the paper-faithful tracker, same columns
     assert list(paper_rows[0]) == list(rows[0]) and len(paper_rows) == len(rows)
-    tum = out / "trajectories" / "ours_circular_medium_30fps_gt_estimate.tum"
+    tum = out / "trajectories" / "filter_circular_medium_30fps_gt_estimate.tum"
     assert tum.read_text().startswith("# timestamp tx ty tz qx qy qz qw")
     assert "Table 2 rerun" in capsys.readouterr().out
 
@@ -54,7 +54,8 @@ def test_ablation_writes_the_agreed_csv_and_the_sawtooth(tmp_path):
     assert main(["experiment", "ablation", "--out", str(out), "--duration", "3", "--in-process"]) == 0
     rows = _csv(out / "ablation.csv")
     assert list(rows[0]) == ["variant", "backend", "motion", "level", "fps", "proj_px"]
-    assert {r["variant"] for r in rows} == {"full", "bscm_pia_off", "imu_only"} and len(rows) == 3 * 2 * 6
+    variants = {"full", "bscm_pia_off", "imu_only", "filter", "filter_default_covariance", "filter_no_gravity_state"}
+    assert {r["variant"] for r in rows} == variants and len(rows) == len(variants) * 2 * 6
     for name in ("ablation.png", "sawtooth.png", "ablation_over_time.png"):
         assert (out / name).stat().st_size > 0
 
@@ -68,7 +69,7 @@ def test_euroc_writes_the_agreed_csv(tmp_path):
     assert main(["experiment", "euroc", "--out", str(out), "--in-process"]) == 0
     rows = _csv(out / "euroc.csv")
     assert list(rows[0]) == ["variant", "pos_mm", "ori_deg", "proj_px"]
-    assert [r["variant"] for r in rows] == ["full", "bscm_off", "ours"]
+    assert [r["variant"] for r in rows] == ["full", "bscm_off", "filter"]
 
 
 def test_table2_with_the_pvnet_backend_renders_frames_and_reports_beside_the_oracle(tmp_path):
@@ -77,7 +78,7 @@ def test_table2_with_the_pvnet_backend_renders_frames_and_reports_beside_the_ora
 
     out = tmp_path / "t2v"
     rows = table2_vision.run(out, "pvnet", [0], duration_s=1.5, fps_list=(30,), motions=("translational",))
-    assert {(r[0], r[4]) for r in rows} == {(v, b) for v in ("ours", "vision") for b in ("gt_oracle", "pvnet")}
+    assert {(r[0], r[4]) for r in rows} == {(v, b) for v in ("filter", "paper") for b in ("gt_oracle", "pvnet")}
     assert all(r[8] < 1.0 for r in rows if r[4] == "gt_oracle")  # the oracle rows: the tracker works
     pvnet = [r for r in rows if r[4] == "pvnet"]
     assert all(r[10] > 0 for r in pvnet)  # requests went out with rendered frames

@@ -54,9 +54,15 @@ def test_track_cli_writes_results_and_rejects_bad_input(short_seq, tmp_path, cap
     assert main(["track", str(short_seq.root), "--out", str(out), "--backend", "nope", "--no-plots"]) == 2
     assert "unknown estimator" in capsys.readouterr().err
     tuned = ["track", str(short_seq.root), "--out", str(tmp_path / "tuned"), "--backend", "noisy", "--no-plots",
-             "--preset", "vision", "--set", "gravity_follow=0.5", "--set", "pia=false"]
+             "--preset", "paper", "--set", "gravity_follow=0.5", "--set", "pia=false"]
     assert main(tuned) == 0
     capsys.readouterr()
+    filtered = ["track", str(short_seq.root), "--out", str(tmp_path / "filtered"), "--backend", "noisy", "--no-plots",
+                "--set", "filter.time_offset_std_s=0", "--set", "filter.max_rejections=5"]
+    assert main(filtered) == 0
+    assert "| run |" in capsys.readouterr().out
+    assert main(["track", str(short_seq.root), "--out", str(out), "--set", "filter.warp=1", "--no-plots"]) == 2
+    assert "filter.NAME" in capsys.readouterr().err
     assert main(["track", str(short_seq.root), "--out", str(out), "--set", "warp=9", "--no-plots"]) == 2
     assert "OPTION=VALUE with OPTION one of" in capsys.readouterr().err
     assert main(["track", str(short_seq.root), "--out", str(out), "--set", "pose_gain=2", "--no-plots"]) == 2

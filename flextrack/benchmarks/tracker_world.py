@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from client_sdk import Tracker, TrackerOptions
+from client_sdk import Tracker, TrackerOptions, create_tracker
 from flextrack.geometry import se3, so3
 from flextrack.geometry.camera import PinholeCamera, bbox_corners
 
@@ -83,17 +83,22 @@ class Run:
 def drive(motion: Motion, options: TrackerOptions | None = None, duration_s: float = 4.0, fps: float = 60.0,
           imu_hz: float = 200.0, latency_s: float = 0.05, b_g=(0.0, 0.0, 0.0), b_a=(0.0, 0.0, 0.0),
           gyro_sigma: float = 0.0, accel_sigma: float = 0.0, seed: int = 0, answer=None,
-          bias_from_s: float = 0.0, imu_log: list | None = None) -> Run:
-    """Feed IMU, frames and ground-truth backend responses (after `latency_s`) in time order.
+          bias_from_s: float = 0.0, imu_log: list | None = None, answer_covariance=None,
+          imu_delay_s: float = 0.0) -> Run:
+    """Feed IMU, frames and ground-truth backend responses (after `latency_s`) in time order to the
+    tracker core `options.fusion` names.
 
     The biases are added from `bias_from_s` on. `answer(t_capture_s) -> T_CO or None` replaces the
-    ground-truth backend when given. `imu_log`, when given, receives every (t_ns, gyro, accel) fed.
+    ground-truth backend when given; `answer_covariance` (6x6) goes with every answer. The IMU
+    stamps each sample `imu_delay_s` late (a camera-IMU time offset). `imu_log`, when given,
+    receives every (t_ns, gyro, accel) fed.
     """
     rng = np.random.default_rng(seed)
-    tracker = Tracker(options or TrackerOptions(), CAMERA, T_BC, BOX_O)
+    tracker = create_tracker(options or TrackerOptions(), CAMERA, T_BC, BOX_O)
+    delay = round(imu_delay_s * 1e9)
     imu_ns = np.arange(1, int(duration_s * imu_hz) + 1) * round(1e9 / imu_hz)
     frame_ns = np.arange(1, int(duration_s * fps)) * round(1e9 / fps) + 1_000_000  # off the IMU grid
-    events = [(int(t), 0, "imu") for t in imu_ns] + [(int(t), 2, "frame") for t in frame_ns]
+    events = [(int(t) + delay, 0, "imu") for t in imu_ns] + [(int(t), 2, "frame") for t in frame_ns]
     events.sort()
     pending: list[tuple[int, int, int]] = []  # (due_ns, request_id, capture_ns)
     poses, statuses, results = [], [], []
@@ -102,10 +107,10 @@ def drive(motion: Motion, options: TrackerOptions | None = None, duration_s: flo
         while pending and pending[0][0] <= t:
             _, rid, cap = pending.pop(0)
             T = answer(cap * 1e-9) if answer else motion.T_CO(cap * 1e-9)
-            tracker.on_backend_response(rid, cap, T, T is not None)
+            tracker.on_backend_response(rid, cap, T, T is not None, answer_covariance)
         if kind == "imu":
-            w, f = motion.imu(t * 1e-9)
-            on = 1.0 if t * 1e-9 >= bias_from_s else 0.0
+            w, f = motion.imu((t - delay) * 1e-9)
+            on = 1.0 if (t - delay) * 1e-9 >= bias_from_s else 0.0
             w = w + on * np.asarray(b_g) + gyro_sigma * rng.standard_normal(3)
             f = f + on * np.asarray(b_a) + accel_sigma * rng.standard_normal(3)
             tracker.add_imu(t, w, f)
@@ -119,3 +124,16 @@ def drive(motion: Motion, options: TrackerOptions | None = None, duration_s: flo
             if r.request is not None:
                 pending.append((t + lat, r.request.request_id, r.request.frame_t_ns))
     return Run(frame_ns, poses, statuses, results, tracker)
+
+
+def noisy_answers(motion: Motion, sigma_deg: float, seed: int, sigma_m: float = 0.003):
+    """A backend answer(t_s): the true T_CO with Gaussian rotation (deg, left, camera frame) and
+    translation (m) noise per axis, as the noisy oracle draws it."""
+    rng = np.random.default_rng(seed)
+
+    def answer(t):
+        T = motion.T_CO(t)
+        return se3.make(so3.exp(np.radians(sigma_deg) * rng.standard_normal(3)) @ T[:3, :3],
+                        T[:3, 3] + sigma_m * rng.standard_normal(3))
+
+    return answer

@@ -11,16 +11,19 @@ from pathlib import Path
 
 import numpy as np
 
-from client_sdk import TrackerOptions
+from client_sdk import FilterOptions, TrackerOptions
 from client_sdk.network_model import NetworkOptions
 from flextrack.experiments import common, paper, plots
 from flextrack.runners.replay import ReplayOptions
 
 HEADER = ["variant", "backend", "motion", "level", "fps", "proj_px"]
 VARIANTS = {
-    "full": TrackerOptions(),
-    "bscm_pia_off": TrackerOptions(bscm=False, pia=False),
-    "imu_only": TrackerOptions(backend_after_init=False),
+    "full": TrackerOptions(fusion="paper"),
+    "bscm_pia_off": TrackerOptions(fusion="paper", bscm=False, pia=False),
+    "imu_only": TrackerOptions(fusion="paper", backend_after_init=False),
+    "filter": TrackerOptions(),
+    "filter_default_covariance": TrackerOptions(filter=FilterOptions(use_backend_covariance=False)),
+    "filter_no_gravity_state": TrackerOptions(filter=FilterOptions(gravity_state=False)),
 }
 
 

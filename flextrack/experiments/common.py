@@ -24,15 +24,13 @@ from flextrack.runners.replay import ReplayOptions, replay
 from flextrack.runners.results import TrackRecord
 from flextrack.runners.session import model_vertices
 
-# The tracker as the paper describes it and ours (client_sdk.options.preset explains both).
+# The tracker as the paper describes it and the filter (client_sdk.options.preset explains both).
 PAPER_FAITHFUL = preset("paper")
-OURS = preset("ours")
-TRACKER_VARIANTS = {"paper": PAPER_FAITHFUL, "ours": OURS}
+FILTER = preset("filter")
+TRACKER_VARIANTS = {"filter": FILTER, "paper": PAPER_FAITHFUL}
 VARIANT_TITLES = {
-    "ours": "ours (pose_gain 0.5, gyro_bias_gain 0.005, accel_bias_gain 0.01, backend_gate_px 50)",
+    "filter": "filter (the error-state Kalman filter, the same options for every backend)",
     "paper": "paper-faithful (each backend pose resets the state; BSCM with the damped default gains)",
-    "vision": "vision (ours + pose_gain 1, gravity_follow 0.95, gyro_bias_gain 0, velocity_gain 1, accel_bias_gain 0.2: "
-              "the gyro trusted over a learned backend's orientation, each slow answer's velocity taken whole)",
 }
 
 

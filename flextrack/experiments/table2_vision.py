@@ -31,7 +31,7 @@ LIMIT_PX = 5.0  # the goal for a vision backend on these cells (issue 5)
 
 def run(out: Path, backend: str, seeds: list[int], duration_s: float = 10.0, fps_list=(30, 120),
         motions=paper.MOTIONS, levels=("medium",), config: Path = DEFAULT_CONFIG, backend_ms: float = 145.0,
-        variants=("ours", "vision")) -> list[list]:
+        variants=("filter", "paper")) -> list[list]:
     """Rows (HEADER) of every variant, `ORACLE` and `backend` per cell; writes table2_<backend>.md/.csv."""
     registry = EstimatorRegistry.from_config(config)
     if backend not in registry.names() or ORACLE not in registry.names():

@@ -47,11 +47,27 @@ def adds_m(T_est: np.ndarray, T_gt: np.ndarray, points_O: np.ndarray, chunk_elem
 def proj_px_many(T_est: np.ndarray, T_gt: np.ndarray, camera: PinholeCamera, points_O: np.ndarray,
                  chunk: int = 256) -> np.ndarray:
     """`proj_px` for (F, 4, 4) pose pairs at once, (F,) px; a whole run in one numpy pass."""
-    out = np.empty(len(T_est))
+    return proj_and_jitter_many(T_est, T_gt, camera, points_O, chunk)[0]
+
+
+def proj_and_jitter_many(T_est: np.ndarray, T_gt: np.ndarray, camera: PinholeCamera, points_O: np.ndarray,
+                         chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
+    """`proj_px` of (F, 4, 4) pose pairs and the jitter: per frame k, the RMS over the points of the
+    change of the 2D error vector (uv_est - uv_gt) from frame k-1 to k, px (NaN for the first), the
+    frame-to-frame shake an AR user sees."""
+    proj, jitter = np.empty(len(T_est)), np.full(len(T_est), np.nan)
+    last = None
     for s in range(0, len(T_est), chunk):
         uv = []
         for T in (T_est[s:s + chunk], T_gt[s:s + chunk]):
             X = points_O @ T[:, :3, :3].transpose(0, 2, 1) + T[:, None, :3, 3]
             uv.append(camera.project(X.reshape(-1, 3)).reshape(len(X), -1, 2))
-        out[s:s + chunk] = np.linalg.norm(uv[0] - uv[1], axis=-1).mean(axis=1)
-    return out
+        d = uv[0] - uv[1]
+        proj[s:s + chunk] = np.linalg.norm(d, axis=-1).mean(axis=1)
+        if last is None:
+            jitter[s + 1:s + len(d)] = np.sqrt(((d[1:] - d[:-1]) ** 2).sum(axis=-1).mean(axis=1))
+        else:
+            prev = np.concatenate([last[None], d[:-1]])
+            jitter[s:s + len(d)] = np.sqrt(((d - prev) ** 2).sum(axis=-1).mean(axis=1))
+        last = d[-1]
+    return proj, jitter

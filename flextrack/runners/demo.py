@@ -4,7 +4,7 @@
    Pixel-2-grade IMU;
 2. start a backend on a loopback port with the service's embedded default config
    (`service/default_config.toml`: the "gt_oracle" and "gt_noisy" oracles, given that sequence);
-3. track it LIVE (tracker options `--tracker`, default "ours"): IMU and frames fed in real time, requests over the `Track` stream through the
+3. track it LIVE (tracker options `--tracker`, default "filter"): IMU and frames fed in real time, requests over the `Track` stream through the
    latency interceptor (50 Mbps, 10 ms each way, U(0, 30) ms, 100 kB a request) with the Pixel 2
    slowdown, a progress line while it runs;
 4. replay the same sequence in virtual time with both backends, for comparison;
@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from client_sdk.network_model import NetworkOptions
-from client_sdk.options import preset
+from client_sdk.options import PRESETS, preset
 from client_sdk.slowdown import PIXEL2_FACTOR
 from flextrack.formats import sequence as sequence_io
 from flextrack.runners import session
@@ -37,9 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fps", type=float, default=120.0)
     parser.add_argument("--backend", choices=("gt", "noisy"), default="noisy", help="backend of the live run")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--tracker", choices=("ours", "paper"), default="ours",
-                        help="tracker options: 'paper' resets to each backend pose as the paper does, 'ours' filters "
-                             "them (client_sdk.options.preset)")
+    parser.add_argument("--tracker", choices=PRESETS, default="filter",
+                        help="tracker: 'filter' (the error-state Kalman filter) or 'paper' (resets to each backend "
+                             "pose as the paper does) (default: %(default)s)")
     parser.add_argument("--no-replay", action="store_true", help="only the live run")
 
 

@@ -17,15 +17,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from client_sdk import Tracker, TrackerOptions
+from client_sdk import TrackerOptions
 from client_sdk.interceptor import LatencyInterceptor
 from client_sdk.network_model import NetworkOptions
 from client_sdk.slowdown import PIXEL2_FACTOR, Slowdown
-from client_sdk.transport import TrackClient, TransportOptions, make_request
+from client_sdk.transport import TrackClient, TransportOptions
 from flextrack.formats.sequence import Sequence
-from flextrack.geometry.camera import bbox_corners
+from flextrack.runners.exchange import apply_answer, frame_request, tracker_for
 from flextrack.runners.payload import stand_in_jpeg
-from flextrack.runners.replay import intrinsics_of, pose_from_wire
 from flextrack.runners.results import TrackRecord
 from flextrack.v1 import pose_estimation_pb2 as pb
 
@@ -64,11 +63,10 @@ def run_live(seq: Sequence, address: str, vertices_O: np.ndarray, tracker_option
     `frame_jpeg(frame_id)` gives the image a request carries (default: the 90 kB stand-in)."""
     if options.speed <= 0:
         raise ValueError(f"speed must be > 0, got {options.speed}")
-    tracker = Tracker(tracker_options or TrackerOptions(), seq.camera, seq.T_BC, bbox_corners(vertices_O))
+    tracker = tracker_for(seq, vertices_O, tracker_options)
     slowdown = Slowdown(options.slowdown)
     record = TrackRecord(seq.camera, vertices_O)
     image = stand_in_jpeg(seq.camera.width, seq.camera.height)
-    intrinsics = intrinsics_of(seq.camera)
     inbox: queue.Queue = queue.Queue()
     pending: dict[int, object] = {}  # wire frame id -> the tracker's RefinementRequest
     interceptor = LatencyInterceptor(options.network, live=True)
@@ -86,12 +84,8 @@ def run_live(seq: Sequence, address: str, vertices_O: np.ndarray, tracker_option
             if why:
                 record.failures += 1
                 tracker.on_backend_failure(request.request_id)
-            elif item.status == pb.EstimateResponse.OK:
-                record.responses += 1
-                tracker.on_backend_response(request.request_id, item.capture_time_ns, pose_from_wire(item.pose), True)
             else:
-                record.failures += 1
-                tracker.on_backend_response(request.request_id, item.capture_time_ns, None, False)
+                apply_answer(tracker, request.request_id, item, record)
 
     timeline = _timeline(seq)
     t_first, t_last = timeline[0][0], timeline[-1][0]
@@ -118,12 +112,11 @@ def run_live(seq: Sequence, address: str, vertices_O: np.ndarray, tracker_option
                 state = tracker.state_bytes() if result.request is not None else b""
             status = result.status.name
             if result.request is not None:
-                request = make_request(
-                    frame_id=frame_id, capture_time_ns=result.request.frame_t_ns, session_id=options.session_id,
-                    estimator=options.estimator, object_id=seq.object_id, sequence=seq.name,
-                    image=image if frame_jpeg is None else frame_jpeg(frame_id),  # the camera's work: not stretched
-                    width=seq.camera.width, height=seq.camera.height, intrinsics=intrinsics, client_state=state)
-            record.add(frame_id, t_ns, status, result.T_CO, seq.gt_T_CO.get(frame_id))
+                request = frame_request(seq, tracker, frame_id, result.request.frame_t_ns,
+                                        image if frame_jpeg is None else frame_jpeg(frame_id),  # camera: not stretched
+                                        session_id=options.session_id, estimator=options.estimator,
+                                        client_state=state)
+            record.add(frame_id, t_ns, status, result.T_CO, seq.gt_T_CO.get(frame_id), result.covariance)
             if result.request is not None:
                 record.requests += 1
                 pending[frame_id] = result.request

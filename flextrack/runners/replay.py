@@ -21,16 +21,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from client_sdk import Tracker, TrackerOptions
+from client_sdk import TrackerOptions
 from client_sdk.network_model import NetworkOptions
 from client_sdk.slowdown import PIXEL2_FACTOR, FrontendCosts, Slowdown
-from client_sdk.transport import make_request
 from flextrack.formats.sequence import Sequence
-from flextrack.geometry import se3
-from flextrack.geometry.camera import bbox_corners
+from flextrack.runners.exchange import apply_answer, frame_request, tracker_for
 from flextrack.runners.payload import stand_in_jpeg
 from flextrack.runners.results import TrackRecord
-from flextrack.v1 import pose_estimation_pb2 as pb
 
 _IMU, _RESPONSE, _FRAME = 0, 1, 2
 
@@ -45,31 +42,20 @@ class ReplayOptions:
     session_id: str = "replay"
 
 
-def pose_from_wire(pose: pb.Pose) -> np.ndarray:
-    return se3.from_quat_translation(np.array([pose.qw, pose.qx, pose.qy, pose.qz]),
-                                     np.array([pose.tx, pose.ty, pose.tz]))
-
-
-def intrinsics_of(camera) -> pb.Intrinsics:
-    return pb.Intrinsics(fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy, width=camera.width,
-                         height=camera.height, distortion=list(camera.distortion))
-
-
 def replay(seq: Sequence, backend, vertices_O: np.ndarray, tracker_options: TrackerOptions | None = None,
-           options: ReplayOptions = ReplayOptions(), wrap: Callable[[Tracker], Tracker] | None = None,
+           options: ReplayOptions = ReplayOptions(), wrap: Callable | None = None,
            frame_jpeg: Callable[[int], bytes] | None = None) -> TrackRecord:
     """Track `seq` with `backend` (see flextrack.runners.backends) and record every frame against ground truth.
 
     `wrap` may put a proxy around the tracker (the timing experiment measures its calls that way);
     `frame_jpeg(frame_id)` gives the image a request carries (default: the 90 kB stand-in).
     """
-    tracker = Tracker(tracker_options or TrackerOptions(), seq.camera, seq.T_BC, bbox_corners(vertices_O))
+    tracker = tracker_for(seq, vertices_O, tracker_options)
     if wrap is not None:
         tracker = wrap(tracker)
     slowdown = Slowdown(options.slowdown, options.costs)
     record = TrackRecord(seq.camera, vertices_O)
     image = stand_in_jpeg(seq.camera.width, seq.camera.height)
-    intrinsics = intrinsics_of(seq.camera)
     compute_ns = round(options.backend_compute_ms * 1e6)
 
     events: list[tuple] = []  # (t_ns, kind, n, payload)
@@ -87,14 +73,12 @@ def replay(seq: Sequence, backend, vertices_O: np.ndarray, tracker_options: Trac
             tracker.add_imu(t_ns, imu.gyro[i], imu.accel[i])
         elif kind == _FRAME:
             result = tracker.add_frame(t_ns)
-            record.add(payload, t_ns, result.status.name, result.T_CO, seq.gt_T_CO.get(payload))
+            record.add(payload, t_ns, result.status.name, result.T_CO, seq.gt_T_CO.get(payload), result.covariance)
             if result.request is not None:
-                request = make_request(
-                    frame_id=payload, capture_time_ns=result.request.frame_t_ns, session_id=options.session_id,
-                    estimator=options.estimator, object_id=seq.object_id, sequence=seq.name,
-                    image=image if frame_jpeg is None else frame_jpeg(payload),
-                    width=seq.camera.width, height=seq.camera.height, intrinsics=intrinsics,
-                    client_state=tracker.state_bytes())
+                request = frame_request(seq, tracker, payload, result.request.frame_t_ns,
+                                        image if frame_jpeg is None else frame_jpeg(payload),
+                                        session_id=options.session_id, estimator=options.estimator,
+                                        client_state=tracker.state_bytes())
                 record.requests += 1
                 response, delays = backend.call(request)
                 arrive = (t_ns + slowdown.virtual_ns("pim") + delays.uplink_ns + compute_ns + delays.downlink_ns
@@ -103,11 +87,5 @@ def replay(seq: Sequence, backend, vertices_O: np.ndarray, tracker_options: Trac
                 n += 1
         else:
             request, response = payload
-            if response.status == pb.EstimateResponse.OK:
-                record.responses += 1
-                tracker.on_backend_response(request.request_id, response.capture_time_ns,
-                                            pose_from_wire(response.pose), True)
-            else:
-                record.failures += 1
-                tracker.on_backend_response(request.request_id, response.capture_time_ns, None, False)
+            apply_answer(tracker, request.request_id, response, record)
     return record

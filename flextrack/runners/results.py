@@ -1,9 +1,11 @@
 """What a tracking run produced, frame by frame, and its per-sequence errors.
 
-`TrackRecord` collects, for every frame, the tracker's T_CO estimate, the ground truth and the
-status; `summarize` turns it into the paper's per-sequence means (position mm, orientation deg,
-2D projection px on the object's model vertices, as in Table 2), and `write` saves the per-frame
-CSV, the summary and TUM trajectories (estimate and ground truth) that `evo` reads.
+`TrackRecord` collects, for every frame, the tracker's T_CO estimate (with its covariance when the
+tracker keeps one), the ground truth and the status; `summarize` turns it into the paper's
+per-sequence means (position mm, orientation deg, 2D projection px on the object's model vertices,
+as in Table 2), the jitter (RMS of the frame-to-frame change of the 2D error vector), the NEES of
+the pose against the truth, and the worst frame called FINE; `write` saves the per-frame CSV, the
+summary and TUM trajectories (estimate and ground truth) that `evo` reads.
 
 The errors are measured on at most `METRIC_POINTS` of the model's vertices (every k-th, in file
 order): projecting all 12k vertices of a model for each of 3600 frames would cost more than the
@@ -21,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flextrack import wire
 from flextrack.formats import tum
 from flextrack.geometry import metrics
 from flextrack.geometry.camera import PinholeCamera
@@ -41,9 +44,12 @@ class FrameRow:
     status: str
     T_CO: np.ndarray | None  # the tracker's estimate; None while it has none
     T_gt: np.ndarray | None
+    covariance: np.ndarray | None = None  # 6x6 of T_CO (flextrack.wire convention), when the tracker gave one
     proj_px: float = math.nan
     pos_mm: float = math.nan
     ori_deg: float = math.nan
+    jitter_px: float = math.nan  # against the previous frame, when both are scored
+    nees: float = math.nan  # e^T covariance^-1 e of the pose error e (wire convention)
 
 
 @dataclass
@@ -55,10 +61,16 @@ class Summary:
     proj_px: float
     proj_px_p95: float
     proj_px_max: float
+    jitter_px: float = math.nan  # RMS over frames and model points
+    nees_mean: float = math.nan  # over scored frames with a covariance (6 for a consistent tracker)
+    nees_frames: int = 0
+    fine_frames: int = 0
+    worst_fine_px: float = math.nan  # the largest 2D error of a frame called FINE
     status_counts: dict[str, int] = field(default_factory=dict)
     requests: int = 0
     responses: int = 0
     failures: int = 0
+    bad_covariances: int = 0  # answers whose covariance was refused (the tracker's default used)
 
 
 @dataclass
@@ -69,16 +81,18 @@ class TrackRecord:
     requests: int = 0
     responses: int = 0
     failures: int = 0
+    bad_covariances: int = 0
 
     def __post_init__(self) -> None:
         self._points = metric_points(self.vertices_O)
 
         self._unscored: list[FrameRow] = []
 
-    def add(self, frame_id: int, t_ns: int, status: str, T_CO: np.ndarray | None, T_gt: np.ndarray | None) -> FrameRow:
+    def add(self, frame_id: int, t_ns: int, status: str, T_CO: np.ndarray | None, T_gt: np.ndarray | None,
+            covariance: np.ndarray | None = None) -> FrameRow:
         """Keep one frame; its errors are computed, in a batch, when first asked for."""
         row = FrameRow(int(frame_id), int(t_ns), status, None if T_CO is None else np.array(T_CO, float),
-                       None if T_gt is None else np.asarray(T_gt, float))
+                       None if T_gt is None else np.asarray(T_gt, float), covariance)
         self.rows.append(row)
         if row.T_CO is not None and row.T_gt is not None:
             self._unscored.append(row)
@@ -94,11 +108,29 @@ class TrackRecord:
                 row.proj_px = float(px)
                 row.pos_mm = metrics.te_mm(row.T_CO, row.T_gt)
                 row.ori_deg = metrics.re_deg(row.T_CO, row.T_gt)
+                if row.covariance is not None:
+                    e = wire.pose_error(row.T_CO, row.T_gt)
+                    row.nees = float(e @ np.linalg.solve(row.covariance, e))
         return [r for r in self.rows if r.T_CO is not None and r.T_gt is not None]
+
+    def _fill_jitter(self) -> None:
+        """The jitter of every scored frame whose previous frame was scored too (one pass over the run)."""
+        scored = [i for i, r in enumerate(self.rows) if r.T_CO is not None and r.T_gt is not None]
+        if len(scored) < 2:
+            return
+        rows = [self.rows[i] for i in scored]
+        _, jitter = metrics.proj_and_jitter_many(np.stack([r.T_CO for r in rows]), np.stack([r.T_gt for r in rows]),
+                                                 self.camera, self._points)
+        for k, (i, row) in enumerate(zip(scored, rows)):
+            row.jitter_px = float(jitter[k]) if k and scored[k - 1] == i - 1 else math.nan
 
     def summarize(self) -> Summary:
         scored = self.scored()  # fills in the errors of every frame
+        self._fill_jitter()
         proj = np.array([r.proj_px for r in scored])
+        jitter = np.array([r.jitter_px for r in scored if math.isfinite(r.jitter_px)])
+        nees = np.array([r.nees for r in scored if math.isfinite(r.nees)])
+        fine = [r.proj_px for r in scored if r.status == "FINE"]
         counts: dict[str, int] = {}
         for r in self.rows:
             counts[r.status] = counts.get(r.status, 0) + 1
@@ -110,8 +142,12 @@ class TrackRecord:
             frames=len(self.rows), scored_frames=len(scored),
             pos_mm=mean([r.pos_mm for r in scored]), ori_deg=mean([r.ori_deg for r in scored]),
             proj_px=mean(proj), proj_px_p95=float(np.percentile(proj, 95)) if len(proj) else math.nan,
-            proj_px_max=float(proj.max()) if len(proj) else math.nan, status_counts=counts,
-            requests=self.requests, responses=self.responses, failures=self.failures)
+            proj_px_max=float(proj.max()) if len(proj) else math.nan,
+            jitter_px=float(np.sqrt(np.mean(jitter ** 2))) if len(jitter) else math.nan,
+            nees_mean=mean(nees), nees_frames=len(nees), fine_frames=counts.get("FINE", 0),
+            worst_fine_px=max(fine) if fine else math.nan, status_counts=counts,
+            requests=self.requests, responses=self.responses, failures=self.failures,
+            bad_covariances=self.bad_covariances)
 
     def write(self, out_dir: str | Path, name: str = "track") -> Path:
         """frames.csv, summary.json and TUM files (estimate and ground truth) under out_dir."""
@@ -120,9 +156,10 @@ class TrackRecord:
         scored = self.scored()
         with open(out / f"{name}_frames.csv", "w", newline="") as f:
             w = csv.writer(f)
-            w.writerow(["frame_id", "t_ns", "status", "pos_mm", "ori_deg", "proj_px"])
+            w.writerow(["frame_id", "t_ns", "status", "pos_mm", "ori_deg", "proj_px", "jitter_px", "nees"])
             for r in self.rows:
-                w.writerow([r.frame_id, r.t_ns, r.status, f"{r.pos_mm:.6f}", f"{r.ori_deg:.6f}", f"{r.proj_px:.6f}"])
+                w.writerow([r.frame_id, r.t_ns, r.status, f"{r.pos_mm:.6f}", f"{r.ori_deg:.6f}", f"{r.proj_px:.6f}",
+                            f"{r.jitter_px:.6f}", f"{r.nees:.6f}"])
         if scored:
             t = np.array([r.t_ns for r in scored], dtype=np.int64)
             tum.write_tum(out / f"{name}_estimate.tum", t, np.stack([r.T_CO for r in scored]))
@@ -133,10 +170,12 @@ class TrackRecord:
 
 def format_table(rows: list[tuple[str, Summary]]) -> str:
     """A small Markdown table of summaries, one line per named run."""
-    lines = ["| run | frames | FINE % | pos mm | ori deg | proj px | proj p95 px | requests | failures |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = [("| run | frames | FINE % | pos mm | ori deg | proj px | proj p95 px | jitter px | NEES | worst FINE px "
+              "| requests | failures |"),
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for name, s in rows:
         fine = 100.0 * s.status_counts.get("FINE", 0) / max(1, s.frames)
         lines.append(f"| {name} | {s.frames} | {fine:.0f} | {s.pos_mm:.2f} | {s.ori_deg:.3f} | {s.proj_px:.3f} | "
-                     f"{s.proj_px_p95:.3f} | {s.requests} | {s.failures} |")
+                     f"{s.proj_px_p95:.3f} | {s.jitter_px:.3f} | {s.nees_mean:.2f} | {s.worst_fine_px:.2f} | "
+                     f"{s.requests} | {s.failures} |")
     return "\n".join(lines)

@@ -12,9 +12,9 @@ import sys
 from dataclasses import fields, replace
 from pathlib import Path
 
-from client_sdk import TrackerOptions
+from client_sdk import FilterOptions, TrackerOptions
 from client_sdk.network_model import NetworkOptions
-from client_sdk.options import preset
+from client_sdk.options import PRESETS, preset
 from client_sdk.slowdown import PIXEL2_FACTOR
 from flextrack.formats import sequence as sequence_io
 from flextrack.runners import session
@@ -35,16 +35,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--speed", type=float, default=1.0, help="with --live: play the sequence this much faster")
     parser.add_argument("--in-process", action="store_true", help="replay without gRPC (same results)")
     parser.add_argument("--fps", type=float, help="use the sequence's frames nearest to this rate (None: all of them)")
-    parser.add_argument("--preset", choices=("paper", "ours", "vision"), default="paper",
-                        help="tracker options (client_sdk.options.preset): paper, ours (noisy backends), vision "
-                        "(backends whose orientation is off by degrees, e.g. pvnet)")
+    parser.add_argument("--preset", choices=PRESETS, default="filter",
+                        help="tracker: filter (the error-state Kalman filter, for every backend) or paper (the "
+                        "paper's PRM + BSCM) (default: %(default)s)")
     parser.add_argument("--set", action="append", default=[], metavar="OPTION=VALUE",
-                        help="override one TrackerOptions field of the preset, e.g. --set gravity_follow=0.5 "
-                        "(repeatable; numbers and true/false)")
+                        help="override one TrackerOptions field of the preset, e.g. --set px_error=15 or a filter "
+                        "option, e.g. --set filter.time_offset_std_s=0 (repeatable; numbers and true/false)")
     parser.add_argument("--no-bscm", action="store_true", help="ablation: no bias self-correction")
     parser.add_argument("--no-pia", action="store_true", help="ablation: no pose inspection")
     parser.add_argument("--imu-only", action="store_true", help="ablation: no backend after initialisation")
-    parser.add_argument("--integrator", choices=("paper", "midpoint"), default="paper")
+    parser.add_argument("--integrator", choices=("paper", "midpoint"),
+                        help="the paper method's integrator (default: the preset's; the filter always uses midpoint)")
     parser.add_argument("--network", choices=("paper", "real-size", "none"), default="paper",
                         help="paper: 100 kB a request; real-size: the request's serialized size; none: no latency")
     parser.add_argument("--slowdown", type=float, default=PIXEL2_FACTOR, help="device slowdown (1 = none)")
@@ -61,28 +62,37 @@ def network_options(kind: str, seed: int) -> NetworkOptions:
     return NetworkOptions(seed=seed, fixed_payload_bytes=None if kind == "real-size" else NetworkOptions().fixed_payload_bytes)
 
 
-def overrides(pairs: list[str]) -> dict:
-    """["gravity_follow=0.5", "pia=false"] -> {"gravity_follow": 0.5, "pia": False}; ValueError on a bad one."""
-    known = {f.name for f in fields(TrackerOptions)}
-    out = {}
+def overrides(pairs: list[str]) -> tuple[dict, dict]:
+    """(tracker, filter) overrides: ["pia=false", "filter.gate_chi2=30"] -> ({"pia": False}, {"gate_chi2": 30.0});
+    ValueError on a bad one."""
+    known = {f.name for f in fields(TrackerOptions)} - {"filter", "fusion"}
+    known_filter = {f.name for f in fields(FilterOptions)}
+    out: tuple[dict, dict] = ({}, {})
     for pair in pairs:
         name, sep, value = pair.partition("=")
-        if not sep or name not in known:
-            raise ValueError(f"--set {pair!r}: expected OPTION=VALUE with OPTION one of {sorted(known)}")
+        group, _, field_name = name.rpartition(".")
+        if not sep or group not in ("", "filter") or field_name not in (known_filter if group else known):
+            raise ValueError(f"--set {pair!r}: expected OPTION=VALUE with OPTION one of {sorted(known)} or "
+                             f"filter.NAME with NAME one of {sorted(known_filter)}")
+        target = out[1] if group else out[0]
         if value.lower() in ("true", "false"):
-            out[name] = value.lower() == "true"
+            target[field_name] = value.lower() == "true"
         else:
             try:
-                out[name] = float(value)
+                target[field_name] = float(value)
             except ValueError:
                 raise ValueError(f"--set {pair!r}: {value!r} is not a number or true/false") from None
     return out
 
 
 def tracker_options(args) -> TrackerOptions:
-    flags = replace(preset(args.preset), bscm=not args.no_bscm, pia=not args.no_pia,
-                    backend_after_init=not args.imu_only, integrator=args.integrator)
-    return replace(flags, **overrides(args.set))
+    base = preset(args.preset)
+    flags = replace(base, bscm=not args.no_bscm, pia=not args.no_pia, backend_after_init=not args.imu_only,
+                    integrator=args.integrator or base.integrator)
+    tracker_set, filter_set = overrides(args.set)
+    if "max_rejections" in filter_set:
+        filter_set["max_rejections"] = int(filter_set["max_rejections"])
+    return replace(flags, filter=replace(flags.filter, **filter_set), **tracker_set)
 
 
 def run(args) -> int:

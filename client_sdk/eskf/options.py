@@ -1,0 +1,94 @@
+"""The error-state Kalman filter's options: noise models and initial uncertainties, nothing tuned per backend.
+
+IMU densities are Kalibr's (continuous time); the runners fill them from the sequence's
+`imu0/sensor.yaml`. The defaults are the Pixel 2's (LSM6DSM) densities from the paper and the
+simulator's chosen random walks. docs/tracker.md gives the equations these enter.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+
+@dataclass
+class FilterOptions:
+    # --- IMU noise (Kalibr imu0/sensor.yaml) ---
+    gyroscope_noise_density: float = 6.63e-5
+    """rad/s/sqrt(Hz)."""
+    gyroscope_random_walk: float = 4.0e-5
+    """rad/s^2/sqrt(Hz)."""
+    accelerometer_noise_density: float = 7.35e-4
+    """m/s^2/sqrt(Hz)."""
+    accelerometer_random_walk: float = 1.0e-3
+    """m/s^3/sqrt(Hz)."""
+    noise_inflation: float = 2.0
+    """Multiplies the IMU densities above: the discrete-time model (first-order transition, rates held
+    over a sample) and a yaml's lab figures understate what a hand-held phone's IMU does in use."""
+
+    # --- Initial uncertainty (1 sigma, per axis) ---
+    init_velocity_std: float = 0.3
+    """m/s: the device may be moving when tracking starts; the first answers pin the velocity down."""
+    init_gyro_bias_std: float = 0.02
+    """rad/s: a moving start cannot measure the gyro bias (a still one measures it, see below)."""
+    init_accel_bias_std: float = 0.3
+    """m/s^2: a still window cannot tell it from gravity (the two start correlated); a phone's
+    uncalibrated zero-g level reaches 0.4 m/s^2."""
+    init_gravity_std: float = 0.3
+    """m/s^2, per tangent axis of g_O, when gravity comes from a moving device's IMU window (~1.8 deg)."""
+    still_gravity_std: float = 0.03
+    """m/s^2, the same from a still window (the accelerometer bias is then the main error)."""
+    gravity_state: bool = True
+    """False: g_O fixed at initialisation (the ablation "no gravity-direction state")."""
+
+    # --- Camera-IMU time offset (t_imu = t_camera + offset) ---
+    time_offset_s: float = 0.0
+    """Initial value, s."""
+    time_offset_std_s: float = 0.02
+    """Initial uncertainty, s; 0 switches the online estimation off."""
+
+    # --- Backend answers ---
+    use_backend_covariance: bool = True
+    """False: every answer gets the default below, whatever the backend says (ablation)."""
+    default_rotation_std_deg: float = 1.0
+    """Per axis, for answers that come without a covariance (documented default)."""
+    default_translation_std_m: float = 0.01
+    """Per axis, likewise."""
+    gate_chi2: float = 22.46
+    """An answer whose innovation's Mahalanobis distance squared exceeds this is rejected (chi-square,
+    6 dof, 99.9 %)."""
+    max_rejections: int = 3
+    """This many rejected answers in a row mean the filter, not the backend, is wrong: re-initialise
+    from the next one."""
+
+    # --- Status from the covariance ---
+    max_sigma_px: float = 6.0
+    """A pose whose 1-sigma uncertainty, projected on the object's box corners (RMS, px), exceeds
+    this is not FINE, whatever the PIA says (3 sigma ~ 20 px)."""
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, bool):
+                continue
+            if f.name == "time_offset_s":
+                ok = isinstance(value, (int, float)) and math.isfinite(value) and abs(value) < 1.0
+            else:
+                ok = isinstance(value, (int, float)) and math.isfinite(value) and value >= 0
+            if not ok:
+                raise ValueError(f"filter option {f.name} must be a finite number >= 0 (|offset| < 1 s), "
+                                 f"got {value!r}")
+        for name in ("default_rotation_std_deg", "default_translation_std_m", "gate_chi2", "max_sigma_px",
+                     "noise_inflation"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"filter option {name} must be > 0")
+        if self.max_rejections < 1:
+            raise ValueError("filter option max_rejections must be >= 1")
+
+    @classmethod
+    def from_imu_noise(cls, noise, **overrides) -> FilterOptions:
+        """Options with the four densities of a Kalibr `ImuNoise` (formats.kalibr) and any overrides."""
+        return cls(gyroscope_noise_density=noise.gyroscope_noise_density,
+                   gyroscope_random_walk=noise.gyroscope_random_walk,
+                   accelerometer_noise_density=noise.accelerometer_noise_density,
+                   accelerometer_random_walk=noise.accelerometer_random_walk, **overrides)

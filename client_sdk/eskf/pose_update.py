@@ -1,0 +1,81 @@
+"""The backend-pose updater: a T_CO measurement with its 6x6 covariance, applied at its own time.
+
+Measurement model (the wire convention of `flextrack.wire`: rotation error first, camera frame):
+T_CO = T_CB T_OB^-1, so R_CO = R_CB R_OB^T and t_CO = t_CB - R_CO p_OB. The residual
+
+    r = ( Log(R_CO_meas R_CO^T),  t_CO_meas - t_CO )
+
+is, to first order in the error state, r = H dx + n with
+
+    H[:, d_theta] = ( -R_CB ; -[R_CO p_OB]x R_CB )     H[:, d_p] = ( 0 ; -R_CO )
+    H[:, d_td]    = H[:, d_theta] w + H[:, d_p] v        (the pose at t + d_td)
+
+and n the backend's error, covariance Sigma. An answer whose r^T S^-1 r (S = H P H^T + Sigma)
+exceeds the chi-square gate is rejected; otherwise the Kalman gain, the Joseph-form covariance and
+the injection of K r into the nominal state.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from client_sdk.eskf.state import TD, TH, FilterState, N, P, inject
+from flextrack.geometry import so3
+
+_I = np.eye(N)
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+@dataclass(frozen=True)
+class UpdateResult:
+    accepted: bool
+    chi2: float  # r^T S^-1 r
+    state: FilterState | None  # the corrected state when accepted
+    td: float  # the corrected time offset (s)
+
+
+def pose_jacobian(x: tuple, R_CB: np.ndarray, w: tuple, v: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(R_CO, t_CO without t_CB, H): the predicted camera-frame pose parts and the 6xN Jacobian."""
+    R_OB = np.array(x[0:9]).reshape(3, 3)
+    p = np.array(x[9:12])
+    R_CO = R_CB @ R_OB.T
+    Rp = R_CO @ p
+    H = np.zeros((6, N))
+    H[0:3, TH] = -R_CB
+    H[3:6, TH] = -skew(Rp) @ R_CB
+    H[3:6, P] = -R_CO
+    H[:, TD] = H[:, TH] @ np.array(w) + H[:, P] @ np.array(v)
+    return R_CO, Rp, H
+
+
+def pose_covariance(H: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """The 6x6 covariance of T_CO (wire convention) from the filter's covariance."""
+    out = H @ cov @ H.T
+    return 0.5 * (out + out.T)
+
+
+def update(state: FilterState, td: float, T_CO_meas: np.ndarray, sigma: np.ndarray, R_CB: np.ndarray,
+           t_CB: np.ndarray, w: tuple, gate_chi2: float, gravity_state: bool) -> UpdateResult:
+    """One ESKF update of `state` (the state at the measurement's time) with a backend T_CO."""
+    R_CO, Rp, H = pose_jacobian(state.x, R_CB, w, state.x[12:15])
+    r = np.empty(6)
+    r[0:3] = so3.log(T_CO_meas[:3, :3] @ R_CO.T)
+    r[3:6] = T_CO_meas[:3, 3] - (t_CB - Rp)
+    PHt = state.cov @ H.T
+    S = H @ PHt + sigma
+    S_inv = np.linalg.inv(0.5 * (S + S.T))
+    chi2 = float(r @ S_inv @ r)
+    if not np.isfinite(chi2) or chi2 > gate_chi2:
+        return UpdateResult(False, chi2, None, td)
+    K = PHt @ S_inv
+    dx = K @ r
+    IKH = _I - K @ H
+    cov = IKH @ state.cov @ IKH.T + K @ sigma @ K.T
+    cov = 0.5 * (cov + cov.T)
+    x, c, td = inject(state.x, state.c, td, dx, gravity_state)
+    return UpdateResult(True, chi2, FilterState(x, c, cov), td)

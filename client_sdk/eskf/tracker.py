@@ -1,0 +1,366 @@
+"""The tracker core with an error-state Kalman filter: the same events and outputs as `client_sdk.Tracker`.
+
+    tracker = FilterTracker(TrackerOptions(), camera, T_BC, bbox_corners_O)
+    tracker.add_imu(t_ns, gyro, accel)           # nominal state and covariance, every sample
+    result = tracker.add_frame(t_ns)             # pose, its covariance, status; maybe a request
+    tracker.on_backend_response(request_id, capture_t_ns, T_CO, ok, covariance)   # update at t0
+    tracker.pose_at(t_ns), tracker.pose_covariance_at(t_ns)
+
+What differs from the paper's PRM (docs/tracker.md has the equations):
+
+- Every IMU sample propagates the state and its 18x18 error covariance (`eskf.propagator`).
+- A backend answer for capture time t0 updates state and covariance at t0 + td (td, the camera-IMU
+  time offset, is a state) with the answer's own covariance, or a documented default when it sent
+  none; the buffered IMU is then re-propagated to now. Gravity's direction in O and the biases are
+  states: the answers correct them through the covariance, no gains.
+- Outliers: an answer failing the chi-square test on its innovation is rejected (GATED);
+  `max_rejections` in a row mean the filter is the one that is wrong: it re-initialises from that
+  answer and says so.
+- Initialisation does not wait for a still device: a moving start takes gravity's direction from
+  the IMU window with a wider uncertainty.
+- The status: the PIA as before, and a pose whose projected 1-sigma uncertainty exceeds
+  `max_sigma_px` is TRACKING_LOST ("uncertain"), so a doubtful pose is never FINE.
+
+No threads, sockets, sleeps or clocks; the same events give the same outputs, bit for bit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from client_sdk import initialization
+from client_sdk import state as state_codec
+from client_sdk.eskf.initializer import initial_state
+from client_sdk.eskf.pose_update import pose_covariance, pose_jacobian, update
+from client_sdk.eskf.propagator import CovariancePropagator
+from client_sdk.eskf.state import FilterState, gravity_basis
+from client_sdk.imu_buffer import ImuBuffer
+from client_sdk.inspection import PoseInspector, Status
+from client_sdk.options import TrackerOptions
+from client_sdk.propagation import step_midpoint
+from client_sdk.refinement import ResponseOutcome
+from client_sdk.state import TrackerState
+from client_sdk.tracker_base import FrameResult, TrackerBase, as_int, check_rigid, imu_sample
+from flextrack.geometry.camera import PinholeCamera
+
+_DEG = np.pi / 180.0
+
+
+def check_covariance(cov, name: str = "covariance") -> np.ndarray:
+    """6x6, finite, symmetric positive definite (ValueError otherwise); numpy only, as the SDK is."""
+    c = np.asarray(cov, dtype=float)
+    if c.shape != (6, 6):
+        raise ValueError(f"{name} must be 6x6, got shape {c.shape}")
+    if not np.all(np.isfinite(c)):
+        raise ValueError(f"{name} must be finite")
+    if np.max(np.abs(c - c.T)) > 1e-9 * max(float(np.max(np.abs(c))), 1e-300):
+        raise ValueError(f"{name} must be symmetric")
+    try:
+        np.linalg.cholesky(c)
+    except np.linalg.LinAlgError:
+        raise ValueError(f"{name} must be positive definite") from None
+    return 0.5 * (c + c.T)
+
+
+class FilterTracker(TrackerBase):
+    """PPM, PIM and an ESKF refinement around one buffered state. See module doc."""
+
+    def __init__(self, options: TrackerOptions | None, camera: PinholeCamera, T_BC: np.ndarray,
+                 bbox_corners_O: np.ndarray) -> None:
+        super().__init__()
+        self.options = options if options is not None else TrackerOptions()
+        o, fo = self.options, self.options.filter
+        T_BC = np.array(check_rigid(T_BC, "T_BC")).reshape(4, 4)
+        self._R_CB = T_BC[:3, :3].T.copy()
+        self._t_CB = -self._R_CB @ T_BC[:3, 3]
+        self.camera = camera
+        self.inspector = PoseInspector(camera, bbox_corners_O, o.area_divisor, o.px_error, o.px_motion,
+                                       o.base_rate, o.near_m)
+        self._corners_O = np.asarray(bbox_corners_O, dtype=float)
+        self._assess_options = replace(o, init_require_still=False)  # the filter starts while moving
+        self._prop = CovariancePropagator(fo)
+        self._default_sigma = np.diag([(fo.default_rotation_std_deg * _DEG) ** 2] * 3
+                                      + [fo.default_translation_std_m ** 2] * 3)
+        self._buf = ImuBuffer(round(o.imu_buffer_s * 1e9))
+        self._anchor: tuple[int, FilterState] | None = None  # the state set by the last answer, at its time
+        self._td = fo.time_offset_s
+        self._basis_key: tuple | None = None
+        self._basis: tuple = ()
+        self._last_frame_t: int | None = None
+        self._last_uv: np.ndarray | None = None
+        self._corrected = False
+        self._rejected = 0  # answers rejected in a row
+        self.last_chi2: float | None = None
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def initialized(self) -> bool:
+        return self._anchor is not None
+
+    @property
+    def time_offset_s(self) -> float:
+        """The estimated camera-IMU time offset (t_imu = t_camera + offset)."""
+        return self._td
+
+    @property
+    def now_ns(self) -> int | None:
+        last = self._buf.last_t_ns
+        if self._anchor is None:
+            return last
+        return self._anchor[0] if last is None else max(last, self._anchor[0])
+
+    @property
+    def state(self) -> TrackerState | None:
+        if self._anchor is None:
+            return None
+        t = self.now_ns
+        st = self._nominal_at(t)
+        return TrackerState.from_tuples(t, st.x, st.c)
+
+    @property
+    def covariance(self) -> np.ndarray | None:
+        """The error-state covariance (18x18, `eskf.state` order) at `now_ns`."""
+        return None if self._anchor is None else self._full_at(self.now_ns).cov.copy()
+
+    def _basis_of(self, c: tuple) -> tuple:
+        g = c[6:9]
+        if g != self._basis_key:
+            self._basis_key, self._basis = g, gravity_basis(g)
+        return self._basis
+
+    # ------------------------------------------------------------------ PPM
+    def add_imu(self, t_ns: int, gyro, accel) -> None:
+        """Propagate state and covariance to this IMU sample and keep it (ValueError, no change, if bad)."""
+        buf = self._buf
+        last = buf.last_t_ns
+        s = imu_sample(t_ns, gyro, accel, last)
+        t = s[0]
+        new = None
+        if self._anchor is not None:
+            prev = buf.samples[-1] if buf.samples else s
+            a_t, a_st = self._anchor
+            base_t, base = (a_t, a_st) if last is None or a_t >= last else (last, buf.states[-1])
+            new = self._step(base, base_t, t, prev, s)
+        buf.append(s, new)
+
+    def _step(self, st: FilterState, t0: int, t1: int, s0: tuple, s1: tuple) -> FilterState:
+        x = step_midpoint(st.x, st.c, t0, t1, s0, s1)
+        return FilterState(x, st.c, self._prop.step(st.cov, x, st.c, self._basis_of(st.c), t0, t1, s0, s1))
+
+    def _base_at(self, t: int) -> tuple[int, int, FilterState] | None:
+        """(buffer index at or before t, base time, base state): the anchor or the stored state before t."""
+        buf = self._buf
+        i = buf.index_at_or_before(t)
+        a = self._anchor
+        if a is not None and a[0] <= t and (i < 0 or a[0] >= buf.times[i]):
+            return i, a[0], a[1]
+        if i >= 0 and buf.states[i] is not None:
+            return i, buf.times[i], buf.states[i]
+        return None
+
+    def _samples_around(self, i: int) -> tuple[tuple, tuple]:
+        buf = self._buf
+        if i + 1 < len(buf):
+            return (buf.samples[i] if i >= 0 else buf.samples[i + 1]), buf.samples[i + 1]
+        return buf.samples[i], buf.samples[i]  # past the newest sample: hold its rates
+
+    def _nominal_at(self, t: int) -> FilterState | None:
+        """The state at t, its covariance that of the base before t (cheap: for poses)."""
+        return self._state_at(t, False)
+
+    def _full_at(self, t: int) -> FilterState | None:
+        """The state at t with its covariance propagated to t (for updates)."""
+        return self._state_at(t, True)
+
+    def _state_at(self, t: int, with_covariance: bool) -> FilterState | None:
+        b = self._base_at(t)
+        if b is None:
+            return None
+        i, base_t, st = b
+        if t == base_t or not self._buf.samples:
+            return st
+        s0, s1 = self._samples_around(i)
+        if with_covariance:
+            return self._step(st, base_t, t, s0, s1)
+        return FilterState(step_midpoint(st.x, st.c, base_t, t, s0, s1), st.c, st.cov)
+
+    def _rate_at(self, t: int, c: tuple) -> tuple:
+        """The bias-corrected gyro rate (body) of the newest sample at or before t."""
+        buf = self._buf
+        i = max(buf.index_at_or_before(t), 0)
+        s = buf.samples[i]
+        return (s[1] - c[0], s[2] - c[1], s[3] - c[2])
+
+    def _imu_time(self, t_camera: int) -> int:
+        return t_camera + round(self._td * 1e9)
+
+    def _T_CO(self, x: tuple) -> np.ndarray:
+        R_OB = np.array(x[0:9]).reshape(3, 3)
+        R_CO = self._R_CB @ R_OB.T
+        T = np.eye(4)
+        T[:3, :3] = R_CO
+        T[:3, 3] = self._t_CB - R_CO @ np.array(x[9:12])
+        return T
+
+    def _pose_covariance(self, st: FilterState, t_imu: int) -> np.ndarray:
+        _, _, H = pose_jacobian(st.x, self._R_CB, self._rate_at(t_imu, st.c), st.x[12:15])
+        return pose_covariance(H, st.cov)
+
+    def pose_at(self, t_ns: int) -> np.ndarray | None:
+        """T_CO at camera time t_ns (None before initialisation; ValueError before the buffer)."""
+        t = as_int(t_ns, "t_ns")
+        if self._anchor is None:
+            return None
+        st = self._nominal_at(self._imu_time(t))
+        if st is None:
+            raise ValueError(f"no state at {t} ns: before tracking started or older than the IMU buffer")
+        return self._T_CO(st.x)
+
+    def pose_covariance_at(self, t_ns: int) -> np.ndarray | None:
+        """The 6x6 covariance of `pose_at(t_ns)` in the wire convention (rotation first, camera frame)."""
+        t = as_int(t_ns, "t_ns")
+        if self._anchor is None:
+            return None
+        t_imu = self._imu_time(t)
+        st = self._full_at(t_imu)
+        if st is None:
+            raise ValueError(f"no state at {t} ns: before tracking started or older than the IMU buffer")
+        return self._pose_covariance(st, t_imu)
+
+    def sigma_px(self, T_CO: np.ndarray, cov: np.ndarray) -> float:
+        """RMS over the box corners of the 1-sigma 2D uncertainty (px) a pose covariance implies."""
+        R, t = T_CO[:3, :3], T_CO[:3, 3]
+        RX = self._corners_O @ R.T  # (8, 3)
+        Xc = RX + t
+        z = Xc[:, 2]
+        if np.any(z <= 1e-6):
+            return float("inf")
+        cam = self.camera
+        # d uv / d e = d uv / d X_c  [-[R X_o]x, I]
+        J = np.zeros((len(Xc), 2, 6))
+        du = np.stack([cam.fx / z, np.zeros_like(z), -cam.fx * Xc[:, 0] / z ** 2], axis=1)
+        dv = np.stack([np.zeros_like(z), cam.fy / z, -cam.fy * Xc[:, 1] / z ** 2], axis=1)
+        for row, d in ((0, du), (1, dv)):
+            J[:, row, 3:6] = d
+            J[:, row, 0:3] = -np.cross(d, RX)  # d^T (-[RX]x) = -(d x RX)^T ... written as a row
+        var = np.einsum("nij,jk,nik->n", J, cov, J)
+        return float(np.sqrt(np.mean(var)))
+
+    # ------------------------------------------------------------------ PIM + requests
+    def add_frame(self, t_ns: int) -> FrameResult:
+        t = as_int(t_ns, "t_ns")
+        if self._last_frame_t is not None and t <= self._last_frame_t:
+            raise ValueError(f"frame at {t} ns is not after the previous one at {self._last_frame_t} ns")
+        o = self.options
+        fps = o.fps
+        if fps is None and self._last_frame_t is not None:
+            fps = 1e9 / (t - self._last_frame_t)
+        t_last, self._last_frame_t = self._last_frame_t, t
+        if self._anchor is None:
+            return self._initializing_frame(t)
+        t_imu = self._imu_time(t)
+        st = self._nominal_at(t_imu)
+        T_CO = self._T_CO(st.x)
+        cov = self._pose_covariance(st, t_imu)
+        status, detail = Status.FINE, "tracking"
+        if o.pia:
+            uv = self.inspector.project(T_CO)
+            status, detail = self.inspector.inspect(uv, self._last_uv_now(t_last), fps)
+            self._last_uv = uv
+        if status is Status.FINE:
+            sigma = self.sigma_px(T_CO, cov)
+            if sigma > o.filter.max_sigma_px:
+                status, detail = Status.TRACKING_LOST, f"uncertain: {sigma:.1f} px (1 sigma) > {o.filter.max_sigma_px} px"
+        request = None
+        if o.backend_after_init and self._book.in_flight is None:
+            request = self._book.issue(t, "refine" if status is Status.FINE else "failure")
+        self.status, self.status_detail = status, detail
+        return FrameResult(t, T_CO, status, request, cov)
+
+    def _last_uv_now(self, t_last: int | None) -> np.ndarray | None:
+        """The last frame's corners, re-evaluated on the corrected trajectory after an update (the
+        correction's own jump is no failure of the PIA's motion test)."""
+        if not self._corrected:
+            return self._last_uv
+        self._corrected = False
+        if t_last is None or self._last_uv is None:
+            return None
+        st = self._nominal_at(self._imu_time(t_last))
+        return None if st is None else self.inspector.project(self._T_CO(st.x))
+
+    # ------------------------------------------------------------------ refinement
+    def on_backend_response(self, request_id: int, capture_t_ns: int, T_CO: np.ndarray | None, ok: bool = True,
+                            covariance: np.ndarray | None = None) -> ResponseOutcome:
+        """Update the filter with the backend's T_CO (and its 6x6 covariance, wire convention) at the capture
+        time, then re-propagate the buffered IMU to now. ValueError, with no state change, for a capture
+        time that is not the request's, a pose that is not rigid, or a covariance that is not SPD."""
+        t0 = self._answered(request_id, capture_t_ns)
+        if t0 is None:
+            return ResponseOutcome.STALE
+        usable = ok and T_CO is not None
+        if usable:
+            T = np.array(check_rigid(T_CO, "T_CO")).reshape(4, 4)
+            sigma = None if covariance is None else check_covariance(covariance, "covariance")
+        self._book.in_flight = None
+        if not usable:
+            return self._outcome(ResponseOutcome.REJECTED, "backend found no pose; asking again")
+        fo = self.options.filter
+        note = ""
+        if sigma is None or not fo.use_backend_covariance:
+            note = "" if sigma is not None else " (no covariance from the backend: the default used)"
+            sigma = self._default_sigma
+        tau = self._imu_time(t0)
+        buf = self._buf
+        if not len(buf) or tau < buf.first_t_ns or (self._anchor is not None and self._base_at(tau) is None):
+            return self._outcome(ResponseOutcome.TOO_OLD, "backend pose older than the IMU buffer; dropped")
+        if self._anchor is None:
+            self._initialize(tau, T, sigma)
+            return self._outcome(ResponseOutcome.INITIALIZED, "tracking: initialised from the first backend pose" + note)
+        st = self._full_at(tau)
+        res = update(st, self._td, T, sigma, self._R_CB, self._t_CB, self._rate_at(tau, st.c), fo.gate_chi2,
+                     fo.gravity_state)
+        self.last_chi2 = res.chi2
+        if not res.accepted:
+            self._rejected += 1
+            if self._rejected < fo.max_rejections:
+                return self._outcome(ResponseOutcome.GATED, f"backend pose rejected (chi2 {res.chi2:.1f} > "
+                                     f"{fo.gate_chi2}; {self._rejected} in a row)")
+            self._initialize(tau, T, sigma)
+            return self._outcome(ResponseOutcome.INITIALIZED, f"{self._rejected} backend poses rejected in a row: "
+                                 "the filter was wrong; re-initialised from the backend's pose")
+        self._rejected = 0
+        self._td = res.td
+        self._set_anchor(tau, res.state)
+        return self._outcome(ResponseOutcome.APPLIED, "tracking" + note)
+
+    def _initialize(self, tau: int, T_CO: np.ndarray, sigma: np.ndarray) -> None:
+        T_OB = np.linalg.inv(T_CO) @ np.vstack([np.hstack([self._R_CB, self._t_CB[:, None]]), [0, 0, 0, 1]])
+        x_pose = tuple(T_OB[:3, :3].ravel().tolist()) + tuple(T_OB[:3, 3].tolist())
+        window_ns = round(self.options.init_window_s * 1e9)
+        window = self._buf.window(tau - window_ns, tau) or [self._buf.samples[max(self._buf.index_at_or_before(tau), 0)]]
+        est = initialization.estimate(window, self.options)
+        self._rejected = 0
+        self._td = self.options.filter.time_offset_s
+        self._anchor = None
+        self._set_anchor(tau, initial_state(x_pose, sigma, window, self._R_CB, est, self.options.filter))
+
+    def _set_anchor(self, tau: int, st: FilterState) -> None:
+        """The state at tau from an answer; every buffered sample after tau re-propagated from it."""
+        self._anchor = (tau, st)
+        buf = self._buf
+        start = buf.index_at_or_before(tau) + 1
+        prev = buf.samples[start - 1] if start > 0 else None
+        t = tau
+        for i in range(start, len(buf)):
+            s = buf.samples[i]
+            st = self._step(st, t, s[0], prev if prev is not None else s, s)
+            buf.states[i] = st
+            t, prev = s[0], s
+        self._corrected = True
+
+    # ------------------------------------------------------------------ wire state
+    def state_bytes(self) -> bytes:
+        """As `Tracker.state_bytes`: the state and the newest IMU samples, ~10 kB."""
+        return state_codec.blob(self.state, self.now_ns, self._buf, self.options.state_imu_samples)

@@ -1,0 +1,64 @@
+"""What both runners (replay and live) do the same way: build the tracker for a sequence, build a
+frame's request, and hand the backend's answer to the tracker.
+
+One home, so that the two shells cannot drift apart: the prior on every request after
+initialisation, the IMU noise from the sequence's Kalibr yaml, the answer's covariance decoded once
+(a bad one is counted and replaced by the tracker's documented default).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from client_sdk import TrackerOptions, create_tracker
+from client_sdk.transport import make_request, prior_of
+from flextrack import wire
+from flextrack.formats.sequence import Sequence
+from flextrack.geometry.camera import bbox_corners
+from flextrack.runners.results import TrackRecord
+from flextrack.v1 import pose_estimation_pb2 as pb
+
+
+def tracker_for(seq: Sequence, vertices_O: np.ndarray, options: TrackerOptions | None):
+    """The tracker core the options name; the filter's IMU densities are the sequence's (imu0/sensor.yaml)."""
+    options = options or TrackerOptions()
+    if options.fusion == "filter":
+        n = seq.imu_noise
+        options = replace(options, filter=replace(
+            options.filter, gyroscope_noise_density=n.gyroscope_noise_density,
+            gyroscope_random_walk=n.gyroscope_random_walk, accelerometer_noise_density=n.accelerometer_noise_density,
+            accelerometer_random_walk=n.accelerometer_random_walk))
+    return create_tracker(options, seq.camera, seq.T_BC, bbox_corners(vertices_O))
+
+
+def intrinsics_of(camera) -> pb.Intrinsics:
+    return pb.Intrinsics(fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy, width=camera.width,
+                         height=camera.height, distortion=list(camera.distortion))
+
+
+def frame_request(seq: Sequence, tracker, frame_id: int, capture_time_ns: int, image: bytes, *, session_id: str,
+                  estimator: str, client_state: bytes) -> pb.EstimateRequest:
+    """The request for one frame, with the tracker's prior at the capture time once it has one."""
+    return make_request(
+        frame_id=frame_id, capture_time_ns=capture_time_ns, session_id=session_id, estimator=estimator,
+        object_id=seq.object_id, sequence=seq.name, image=image, width=seq.camera.width,
+        height=seq.camera.height, intrinsics=intrinsics_of(seq.camera), client_state=client_state,
+        prior=prior_of(tracker, capture_time_ns))
+
+
+def apply_answer(tracker, request_id: int, response: pb.EstimateResponse, record: TrackRecord) -> None:
+    """Hand one backend answer to the tracker and count it in the record."""
+    if response.status != pb.EstimateResponse.OK:
+        record.failures += 1
+        tracker.on_backend_response(request_id, response.capture_time_ns, None, False)
+        return
+    record.responses += 1
+    try:
+        covariance = wire.covariance_from_pb(response.pose_covariance, "the backend's covariance")
+    except wire.BadCovariance:
+        covariance = None
+        record.bad_covariances += 1
+    tracker.on_backend_response(request_id, response.capture_time_ns, wire.pose_from_pb(response.pose), True,
+                                covariance)
