@@ -11,6 +11,8 @@ session would add.
 from __future__ import annotations
 
 import argparse
+import ctypes
+import gc
 import queue
 import tempfile
 import time
@@ -35,6 +37,14 @@ def rss_mib() -> float:
     return float("nan")
 
 
+def _release_free_memory() -> None:
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)  # glibc keeps freed heap pages resident until asked
+    except (OSError, AttributeError):
+        pass
+
+
 def sdk_buffers(tracker, client, interceptor) -> dict[str, int]:
     """What the SDK keeps per frame or per sample: each must stay bounded however long the session."""
     return {"imu_buffer": len(tracker._buf), "in_flight": client.in_flight,
@@ -50,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
         root = generate_sequence("circular", "medium", Path(tmp) / "long", duration_s=args.duration_s,
                                  fps=args.fps, seed=args.seed)
         seq = sequence_io.load(root)
+        _release_free_memory()  # the simulation's temporaries: not the SDK's, out of the baseline
         config = Path(tmp) / "server.toml"
         config.write_text(f'[[estimators]]\nname = "gt"\nkind = "gt_oracle"\n[estimators.params]\n'
                           f'sequence_roots = ["{root}"]\n')
