@@ -12,6 +12,8 @@ starting pose's projected keypoints as a weak prior so that a few false edges ca
 last round, once the pose is near, the points left more than `fit_px` off their edge are dropped
 and the pose solved again: the false edges are mostly the object's own print just inside its
 outline, so they lean one way, and even down-weighted they pulled the pose too far (docs/pvnet.md).
+`refine` also returns the last fit's Jacobian and residuals ("gn"), which the pvnet estimator turns
+into the pose's covariance.
 """
 
 from __future__ import annotations
@@ -144,7 +146,7 @@ class ContourRefiner:
         return offset, found
 
     def _fit(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, points_O: np.ndarray, normals: np.ndarray,
-             targets: np.ndarray, prior: np.ndarray, trim: bool) -> tuple[np.ndarray, np.ndarray]:
+             targets: np.ndarray, prior: np.ndarray, trim: bool) -> tuple[np.ndarray, np.ndarray, dict]:
         """The pose (R, t) moved so that the contour points land on their edges along their normals,
         the keypoints held near their prior projections. Residual rows: one per contour point, then
         x and y per keypoint. `trim`: solved again without the points left over `fit_px` off."""
@@ -173,7 +175,9 @@ class ContourRefiner:
             near = np.abs(residuals(x)[:m]) < self.config.fit_px
             if near.sum() >= self.config.min_points:
                 return self._fit(K, R, t, points_O[near], normals[near], targets[near], prior, trim=False)
-        return so3.exp(x[:3]) @ R, t + x[3:]
+        # what the pose covariance is made of: the Jacobian at the solution (w.r.t. a left perturbation of
+        # it in the camera frame, the wire convention) and the residuals, contour rows first
+        return so3.exp(x[:3]) @ R, t + x[3:], {"J": jacobian(x), "r": residuals(x), "m": m}
 
     def refine(self, image: np.ndarray, K: np.ndarray, T_CO: np.ndarray) -> tuple[np.ndarray, dict]:
         """The refined pose and what happened ({"points": edges used, "shift_px": keypoint motion,
@@ -182,7 +186,7 @@ class ContourRefiner:
         img = image.astype(np.float32)
         R, t = T_CO[:3, :3].copy(), T_CO[:3, 3].copy()
         prior = _project(K, R, t, self.keypoints)
-        used, fit = 0, 0.0
+        used, fit, gn = 0, 0.0, None
         for round_ in range(cfg.rounds):
             contour = self._contour(K, R, t, image.shape[:2])
             if contour is None:
@@ -193,7 +197,8 @@ class ContourRefiner:
             if used < cfg.min_points:
                 break
             targets = pts[found] + offset[found, None] * normals[found]
-            R, t = self._fit(K, R, t, points_O[found], normals[found], targets, prior, trim=cfg.trim and round_ == cfg.rounds - 1)
+            R, t, gn = self._fit(K, R, t, points_O[found], normals[found], targets, prior,
+                                 trim=cfg.trim and round_ == cfg.rounds - 1)
             along = np.sum((_project(K, R, t, points_O[found]) - targets) * normals[found], axis=1)
             # share of the outline in view that lies on an edge (out of view, no edge can be checked)
             in_view = np.all((pts >= 1) & (pts <= np.array(image.shape[1::-1]) - 2), axis=1)
@@ -203,4 +208,4 @@ class ContourRefiner:
         T = T_CO.copy()
         if not kept:
             T[:3, :3], T[:3, 3] = R, t
-        return T, {"points": used, "shift_px": shift, "kept": kept, "fit": 0.0 if kept else fit}
+        return T, {"points": used, "shift_px": shift, "kept": kept, "fit": 0.0 if kept else fit, "gn": gn}

@@ -10,6 +10,12 @@ angular noise on the vectors that point is pulled towards the pixels, because a 
 point grows with the point's distance from the ray's pixel. Keypoints off the object came out a
 few per cent too close to the object's centre, which PnP reads as a few per cent more distance
 (docs/pvnet.md); the vote count is an angular score and has no such pull.
+
+`vote_with_spread` also gives each keypoint a 2x2 covariance, PVNet's: the scatter of its hypotheses
+about their mean, each weighted by its votes (those with at least `spread_share` of the best's votes:
+a far intersection of two nearly parallel rays would swamp the rest). It is a spread of single
+pairs' intersections, a constant multiple of the keypoint's own error at best; the pose covariance
+built on it is calibrated by one factor (estimators/pvnet.py).
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ class VotingConfig:
     hypotheses: int = 64  # per keypoint
     cos_threshold: float = 0.99  # about 8 degrees
     max_pixels: int = 500  # pixels that score the hypotheses (a random subset beyond this)
+    spread_share: float = 0.5  # hypotheses with at least this share of the best's votes make the spread
 
 
 def _intersect(p1, v1, p2, v2):
@@ -45,6 +52,21 @@ def _inliers(h: np.ndarray, pixels: np.ndarray, vectors: np.ndarray, cos_thresho
 def vote(pixels: np.ndarray, vectors: np.ndarray, rng: np.random.Generator,
          config: VotingConfig = VotingConfig()) -> tuple[np.ndarray, np.ndarray]:
     """Keypoints (K, 2) and their inlier ratios (K,) from object pixels (N, 2) and unit vectors (N, K, 2)."""
+    return vote_with_spread(pixels, vectors, rng, config)[:2]
+
+
+def _spread(h: np.ndarray, score: np.ndarray, share: float) -> np.ndarray:
+    """(K, 2, 2) vote-weighted covariances of the hypotheses h (K, H, 2) with votes score (K, H)."""
+    w = np.where(score >= share * score.max(axis=1, keepdims=True), score, 0).astype(float)
+    w /= np.maximum(w.sum(axis=1, keepdims=True), 1e-12)
+    mean = np.einsum("kh,khi->ki", w, h)
+    d = h - mean[:, None, :]
+    return np.einsum("kh,khi,khj->kij", w, d, d)
+
+
+def vote_with_spread(pixels: np.ndarray, vectors: np.ndarray, rng: np.random.Generator,
+                     config: VotingConfig = VotingConfig()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`vote`, and per keypoint the (2, 2) covariance of its hypotheses (px^2; see the module's notes)."""
     n, k = vectors.shape[:2]
     if n < 2:
         raise ValueError(f"voting needs at least 2 pixels, got {n}")
@@ -61,4 +83,4 @@ def vote(pixels: np.ndarray, vectors: np.ndarray, rng: np.random.Generator,
                      config.cos_threshold).sum(axis=2)
     kp = h[np.arange(k), np.argmax(score, axis=1)]
     support = _inliers(kp[:, None, :], pixels, vectors, config.cos_threshold)[:, 0]  # (K, N)
-    return kp, support.mean(axis=1)
+    return kp, support.mean(axis=1), _spread(h, score, config.spread_share)

@@ -11,6 +11,16 @@ estimator, the one PnP solver of the project, and the pose is refined on the ima
 (`refine`, estimators/contour_refine.py): PnP on voted keypoints is right in 2D but a few per cent
 off in depth, and the object's outline fixes that.
 
+Every pose carries its covariance (wire convention, flextrack.wire; docs/estimators.md):
+- the refined pose: the refinement's Gauss-Newton information J^T J at its solution (contour rows
+  and the keypoint prior's), scaled by the contour residual s: Sigma = refine_inflation *
+  s^2 (s / 0.35 px)^refine_edge_power (J^T J)^-1. Its errors come mostly from edges that are not
+  the outline's (the print, the background), which the iid residuals understate and which grow
+  with s faster than s^2;
+- PnP's pose (refine = false, or a refinement that kept it): the voted keypoints' spreads C_i
+  through PnP's Jacobian, Sigma = keypoint_inflation * (sum_i J_i^T (C_i + floor^2 I)^-1 J_i)^-1.
+The inflations are fitted by `flextrack evaluate nees` on tuning frames.
+
 The network is tied to one object: its ONNX metadata holds the 3D keypoints it was trained for,
 and loading refuses a model whose keypoints differ from the object's registered ones.
 """
@@ -27,11 +37,18 @@ import numpy as np
 
 from estimators.base import EstimateInput, EstimateOutput, Estimator, InvalidInput, Status
 from estimators.contour_refine import ContourRefiner
-from estimators.keypoint_voting import VotingConfig, vote
+from estimators.keypoint_voting import VotingConfig, vote_with_spread
 from estimators.objects import ObjectRegistry
-from estimators.pnp import PnpEstimator
+from estimators.pnp import PnpEstimator, covariance, pose_jacobian
 
 INPUT_SCALE = 2  # frame -> network input (area averaging)
+# The covariance (docs/estimators.md; the inflations fitted by `flextrack evaluate nees` on its tuning frames)
+KEYPOINT_FLOOR_PX = 0.3  # px added in quadrature to each voted keypoint's spread
+KEYPOINT_INFLATION = 1.52  # PnP's pose (refine = false) from the voted keypoints
+REFINE_FLOOR_PX = 0.1  # least RMS contour residual the refinement's covariance assumes
+REFINE_EDGE_REF_PX = 0.35  # a typical RMS contour residual: where the edge-quality scaling is 1
+REFINE_EDGE_POWER = 4.0  # the variance grows as s^(2 + p) with the RMS contour residual s
+REFINE_INFLATION = 25.8  # the refined pose
 OUTPUT_STRIDE = 2  # network input -> output grid
 
 
@@ -71,7 +88,10 @@ class PvnetEstimator(Estimator):
                  full_resolution_search: bool = True, near_box_px: float = 50.0, candidates: int = 3,
                  candidate_share: float = 0.25, min_confidence: float = 0.1, rotations: int = 4, turn_margin: float = 1.5,
                  hypotheses: int = 64, cos_threshold: float = 0.99, ransac_px: float = 8.0, seed: int = 0,
-                 refine: bool = True, min_outline_fit: float = 0.7, device: str = "auto", threads: int = 0):
+                 refine: bool = True, min_outline_fit: float = 0.7, device: str = "auto", threads: int = 0,
+                 keypoint_floor_px: float = KEYPOINT_FLOOR_PX, keypoint_inflation: float = KEYPOINT_INFLATION,
+                 refine_floor_px: float = REFINE_FLOOR_PX, refine_inflation: float = REFINE_INFLATION,
+                 refine_edge_power: float = REFINE_EDGE_POWER):
         import onnxruntime as ort
 
         ids = list(object_ids) or objects.ids()
@@ -112,13 +132,20 @@ class PvnetEstimator(Estimator):
         obj = objects.get(ids[0])
         self.refiner = ContourRefiner(obj.vertices, obj.faces, obj.keypoints) if refine else None
         self.min_outline_fit = float(min_outline_fit)
+        self._keypoints_O = obj.keypoints
+        if min(keypoint_floor_px, keypoint_inflation, refine_floor_px, refine_inflation) <= 0:
+            raise ValueError(f"estimator '{name}': the covariance's floors and inflations must be > 0")
+        self.keypoint_floor_px, self.keypoint_inflation = float(keypoint_floor_px), float(keypoint_inflation)
+        self.refine_floor_px, self.refine_inflation = float(refine_floor_px), float(refine_inflation)
+        self.refine_edge_power = float(refine_edge_power)
 
     @classmethod
     def from_spec(cls, spec) -> PvnetEstimator:
         spec.check_params({"min_mask_px", "zoom", "zoom_size", "zoom_object_px", "full_resolution_search",
                            "near_box_px", "candidates", "candidate_share", "min_confidence", "rotations", "turn_margin",
                            "hypotheses", "cos_threshold", "ransac_px", "seed", "refine", "min_outline_fit", "device",
-                           "threads"})
+                           "threads", "keypoint_floor_px", "keypoint_inflation", "refine_floor_px", "refine_inflation",
+                           "refine_edge_power"})
         if spec.model is None:
             raise ValueError(f"estimator '{spec.name}' (kind pvnet) needs `model = \"path/to/pvnet.onnx\"`")
         return cls(spec.objects, spec.model, spec.name, spec.object_ids, **spec.params)
@@ -263,14 +290,15 @@ class PvnetEstimator(Estimator):
         for pixels, vectors, turn in candidates:
             t1 = time.perf_counter()
             rng = np.random.default_rng([self.seed, inp.frame_id & 0xFFFFFFFF])
-            keypoints, inlier_ratio = vote(pixels, vectors, rng, self.voting)
+            keypoints, inlier_ratio, spreads = vote_with_spread(pixels, vectors, rng, self.voting)
             t2 = time.perf_counter()
             kp_rows = np.column_stack([np.arange(len(keypoints)), keypoints])
             out = self._pnp.estimate(replace(inp, keypoints=kp_rows, image=None))
-            voting_ms += (t2 - t1) * 1e3
-            pnp_ms += (time.perf_counter() - t2) * 1e3
             if out.status == Status.OK:
                 out.confidence = float(out.confidence * np.mean(inlier_ratio))
+                out.covariance = self._keypoint_covariance(inp, keypoints, spreads, out.T_CO)
+            voting_ms += (t2 - t1) * 1e3
+            pnp_ms += (time.perf_counter() - t2) * 1e3
             score = out.confidence / (self.turn_margin if turn else 1.0)
             if best is None or (out.status == Status.OK and (best.status != Status.OK or score > best_score)):
                 best, best_score = out, score
@@ -290,8 +318,41 @@ class PvnetEstimator(Estimator):
         t0 = time.perf_counter()
         image = inp.image if inp.image.ndim == 3 else cv2.cvtColor(inp.image, cv2.COLOR_GRAY2RGB)
         out.T_CO, info = self.refiner.refine(image, inp.camera.K, out.T_CO)
+        if not info["kept"] and info["gn"] is not None:
+            out.covariance = self._refine_covariance(info["gn"])
         stage_ms["refine"] = (time.perf_counter() - t0) * 1e3
         if info["fit"] < self.min_outline_fit:
             return EstimateOutput(Status.OBJECT_NOT_FOUND, message=f"the outline at the best pose does not fit the "
                                   f"image ({info['fit']:.2f} of it on an edge < min_outline_fit {self.min_outline_fit:g})")
         return out
+
+    # ---- covariance ----------------------------------------------------------------------------
+
+    def keypoint_information(self, inp: EstimateInput, keypoints: np.ndarray, spreads: np.ndarray,
+                             T_CO: np.ndarray) -> np.ndarray:
+        """sum_i J_i^T (C_i + floor^2 I)^-1 J_i over the keypoints PnP kept (reprojected within its
+        RANSAC threshold): J_i the 2x6 Jacobian of keypoint i's projection (wire convention), C_i the
+        spread of its votes."""
+        K = inp.camera.K
+        dist = np.asarray(inp.camera.distortion, dtype=float) if any(inp.camera.distortion) else None
+        points = self._keypoints_O
+        J = pose_jacobian(T_CO[:3, :3], T_CO[:3, 3], points, K, dist).reshape(-1, 2, 6)
+        rvec, _ = cv2.Rodrigues(T_CO[:3, :3])
+        projected = cv2.projectPoints(points, rvec, T_CO[:3, 3], K, dist)[0].reshape(-1, 2)
+        keep = np.linalg.norm(projected - keypoints, axis=1) < self._pnp.ransac_px
+        W = np.linalg.inv(spreads[keep] + self.keypoint_floor_px ** 2 * np.eye(2))
+        return np.einsum("nia,nij,njb->ab", J[keep], W, J[keep])
+
+    def _keypoint_covariance(self, inp, keypoints, spreads, T_CO) -> np.ndarray:
+        return covariance(self.keypoint_information(inp, keypoints, spreads, T_CO), self.keypoint_inflation)
+
+    def refine_information(self, gn: dict) -> np.ndarray:
+        """The refinement's Gauss-Newton information at its solution, J^T J / (s^2 (s / s_ref)^p): J over
+        its contour and keypoint-prior rows, s the contour rows' RMS residual (at least refine_floor_px),
+        p = refine_edge_power (docs/estimators.md: the pose error grows faster with s than s^2)."""
+        J, r, m = gn["J"], gn["r"], gn["m"]
+        s = max(float(np.sqrt(np.sum(r[:m] ** 2) / max(m - 6, 1))), self.refine_floor_px)
+        return J.T @ J / (s ** 2 * (s / REFINE_EDGE_REF_PX) ** self.refine_edge_power)
+
+    def _refine_covariance(self, gn: dict) -> np.ndarray:
+        return covariance(self.refine_information(gn), self.refine_inflation)

@@ -22,7 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("flextrack.training.cli", "train the PVNet-style network on rendered views and export it to ONNX"),
     "bench": ("flextrack.benchmarks.cli", "benchmarks that print figures: service throughput, rendering, estimators"),
     "loadtest": ("flextrack.loadtest.cli", "load-test a running service with many Track streams"),
-    "evaluate": ("flextrack.evaluation.cli", "evaluate estimators: prior (score with priors around the ground truth)"),
+    "evaluate": ("flextrack.evaluation.cli", "evaluate estimators: prior (score with priors around the ground truth), nees (covariance calibration)"),
 }
 
 

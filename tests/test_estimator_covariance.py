@@ -87,3 +87,70 @@ def test_pnp_exact_keypoints_keep_the_floor_and_noisier_ones_widen_it():
     assert traces[0] > 0 and traces[0] <= traces[1] < traces[2]
     # the exact fit claims the floor's 0.3 px: its pose is known to well under a millimetre but not exactly
     assert 1e-5 < np.sqrt(traces[0]) < 5e-3
+
+
+# ---- pvnet ------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def pvnet_frames():
+    """Three rendered frames of the default object (pvnet-eval's frames, a seed of their own) and
+    the same frames degraded: blurred, with strong pixel noise, through JPEG at quality 40."""
+    pytest.importorskip("onnxruntime")
+    import cv2
+
+    from flextrack import assets
+    from flextrack.training import evaluate
+
+    if not assets.pvnet_model_path().is_file():
+        pytest.skip("no shipped pvnet model")
+    frames = list(evaluate.rendered_frames(assets.default_object_model(), 3, seed=4242, scenes=1))
+    rng = np.random.default_rng(0)
+    degraded = []
+    for _, rgb, camera, T, _ in frames:
+        bad = cv2.GaussianBlur(rgb, (0, 0), 1.2).astype(float) + rng.normal(0, 12, rgb.shape)
+        _, jpg = cv2.imencode(".jpg", np.clip(bad, 0, 255).astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, 40])
+        degraded.append(cv2.imdecode(jpg, cv2.IMREAD_UNCHANGED))
+    return [(rgb, bad, camera, T) for (_, rgb, camera, T, _), bad in zip(frames, degraded)]
+
+
+def _pvnet(refine: bool):
+    from estimators.objects import ObjectRegistry, load_object
+    from estimators.pvnet import PvnetEstimator
+    from flextrack import assets
+
+    obj = load_object("default", assets.default_object_model())
+    return PvnetEstimator(ObjectRegistry([obj]), assets.pvnet_model_path(), refine=refine)
+
+
+def test_pvnet_refined_pose_covariance_is_spd_and_grows_on_degraded_frames(pvnet_frames):
+    """The refinement's covariance follows how well the outline sits on its edges."""
+    pvnet = _pvnet(refine=True)
+    grew, compared = 0, 0
+    for i, (rgb, bad, camera, _) in enumerate(pvnet_frames):
+        clean = pvnet.estimate(EstimateInput(frame_id=i, capture_time_ns=0, camera=camera, image=rgb))
+        worse = pvnet.estimate(EstimateInput(frame_id=i, capture_time_ns=0, camera=camera, image=bad))
+        assert clean.status is Status.OK, clean.message
+        for out in (clean, worse):
+            if out.status is Status.OK:
+                assert_spd(out.covariance)
+        if worse.status is Status.OK:
+            compared += 1
+            grew += np.trace(worse.covariance[3:, 3:]) > np.trace(clean.covariance[3:, 3:])
+    assert compared >= 2 and grew == compared
+
+
+def test_pvnet_keypoint_covariance_is_spd_and_grows_with_distance(pvnet_frames):
+    """Without the refinement, PnP's pose on the voted keypoints: a farther object, a less certain pose
+    (the voted keypoints' spread barely changes with these degradations: the network's vector field,
+    not the pixels, makes most of it)."""
+    pvnet = _pvnet(refine=False)
+    by_distance = []
+    for i, (rgb, bad, camera, T) in enumerate(pvnet_frames):
+        for image in (rgb, bad):
+            out = pvnet.estimate(EstimateInput(frame_id=i, capture_time_ns=0, camera=camera, image=image))
+            assert out.status is Status.OK, out.message
+            assert_spd(out.covariance)
+        by_distance.append((T[2, 3], np.trace(out.covariance[3:, 3:])))
+    traces = [tr for _, tr in sorted(by_distance)]
+    assert max(d for d, _ in by_distance) - min(d for d, _ in by_distance) > 0.3
+    assert traces == sorted(traces)

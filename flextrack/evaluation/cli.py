@@ -13,6 +13,8 @@ import importlib
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "prior": ("flextrack.evaluation.prior_eval",
               "score an estimator on a BOP folder with priors drawn around the ground truth"),
+    "nees": ("flextrack.evaluation.nees_calibration",
+             "are the estimators' pose covariances calibrated? mean NEES of held-out answers vs chi2(6)"),
 }
 
 

@@ -11,6 +11,9 @@ show whether a mean is made by a few outliers.
 
 from __future__ import annotations
 
+import argparse
+from pathlib import Path
+
 import numpy as np
 
 CHI2_6_MEDIAN = 5.348  # scipy.stats.chi2.median(6)
@@ -66,7 +69,7 @@ def pnp_answers(n: int, seed: int, noise_px: float = 1.0, outlier_share: float =
     from estimators.objects import ObjectRegistry
     from estimators.pnp import PnpEstimator
     from flextrack import wire
-    from flextrack.geometry import se3
+    from flextrack.geometry import metrics, se3
     from flextrack.geometry.camera import PinholeCamera
     from flextrack.training.pvnet_data import random_pose
 
@@ -88,10 +91,231 @@ def pnp_answers(n: int, seed: int, noise_px: float = 1.0, outlier_share: float =
         out = estimator.estimate(EstimateInput(frame_id=i, capture_time_ns=0, camera=camera, keypoints=kp))
         if out.status is not Status.OK:
             continue
-        e = wire.pose_error(out.T_CO, T)
-        proj = float(np.mean(np.linalg.norm(camera.project(se3.transform_points(out.T_CO, obj.vertices))
-                                            - camera.project(se3.transform_points(T, obj.vertices)), axis=1)))
-        rows.append({"frame": i, "nees": nees(e, out.covariance), "proj_px": proj,
+        rows.append({"frame": i, "nees": nees(wire.pose_error(out.T_CO, T), out.covariance),
+                     "proj_px": metrics.proj_px(out.T_CO, T, camera, obj.vertices),
                      "std_deg": np.degrees(np.sqrt(np.diag(out.covariance)[:3])).tolist(),
                      "std_mm": (1e3 * np.sqrt(np.diag(out.covariance)[3:])).tolist()})
     return rows
+
+
+def gt_oracle_answers(sequence_root: Path, noise_t_m: float, noise_r_deg: float, seed: int,
+                      limit: int | None = None) -> list[dict]:
+    """The noisy oracle's answers at the frames of a sequence folder (at most `limit`, evenly spread),
+    scored against the folder's ground truth."""
+    from estimators.base import EstimateInput, Status
+    from estimators.gt_oracle import GtOracleEstimator
+    from estimators.objects import load_object
+    from flextrack import wire
+    from flextrack.formats import sequence as sequence_io
+    from flextrack.geometry import metrics
+
+    seq = sequence_io.load(sequence_root)
+    oracle = GtOracleEstimator(sequence_roots=[sequence_root], noise_t_m=noise_t_m, noise_r_deg=noise_r_deg,
+                               seed=seed)
+    vertices = load_object(seq.object_id, seq.model_path).vertices
+    ids = [int(f) for f in seq.frame_ids if int(f) in seq.gt_T_CO]
+    times = dict(zip((int(f) for f in seq.frame_ids), (int(t) for t in seq.frame_times_ns)))
+    if limit is not None and len(ids) > limit:
+        ids = [ids[int(i)] for i in np.linspace(0, len(ids) - 1, limit).round()]
+    rows = []
+    for frame_id in ids:
+        out = oracle.estimate(EstimateInput(frame_id=frame_id, capture_time_ns=times[frame_id]))
+        if out.status is not Status.OK:
+            continue
+        T = seq.gt_T_CO[frame_id]
+        rows.append({"frame": frame_id, "nees": nees(wire.pose_error(out.T_CO, T), out.covariance),
+                     "proj_px": metrics.proj_px(out.T_CO, T, seq.camera, vertices)})
+    return rows
+
+
+
+def pvnet_answers(n: int, seed: int, jpeg: int | None, estimators: dict, obj, object_path: Path,
+                  progress=None) -> dict[str, list[dict]]:
+    """Each pvnet estimator of `estimators` (name -> estimator) on the same n rendered frames of
+    `flextrack train pvnet-eval` (the simulator's rooms, seed `seed`), sent through JPEG at quality
+    `jpeg` as the device sends them (None: as rendered); `obj` the ObjectModel of `object_path`."""
+    from estimators.base import EstimateInput, Status
+    from flextrack import wire
+    from flextrack.geometry import metrics
+    from flextrack.training import evaluate
+
+    frames = evaluate.rendered_frames(object_path, n, seed, scenes=4)
+    if jpeg is not None:
+        frames = evaluate.as_sent(frames, jpeg, "444")
+    rows: dict[str, list[dict]] = {name: [] for name in estimators}
+    for i, (_, rgb, camera, T, _) in enumerate(frames):
+        for name, estimator in estimators.items():
+            out = estimator.estimate(EstimateInput(frame_id=i, capture_time_ns=0, camera=camera, image=rgb))
+            if out.status is not Status.OK:
+                continue
+            rows[name].append({"frame": i, "nees": nees(wire.pose_error(out.T_CO, T), out.covariance),
+                               "proj_px": metrics.proj_px(out.T_CO, T, camera, obj.vertices),
+                               "add_ok": bool(metrics.add_m(out.T_CO, T, obj.vertices) < 0.1 * obj.diameter_m)})
+        if progress is not None:
+            progress(i + 1)
+    return rows
+
+
+# ---- the command ------------------------------------------------------------------------------
+
+ESTIMATORS = ("gt_oracle", "pnp", "pvnet")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", type=Path, default=Path("out/nees"), help="folder for nees.json")
+    parser.add_argument("--estimators", nargs="+", choices=ESTIMATORS, default=list(ESTIMATORS))
+    parser.add_argument("--max-2d-px", type=float, default=20.0,
+                        help="the criterion's answers: those with a mean 2D error below this (gross outliers out)")
+    parser.add_argument("--tune-seed", type=int, default=1, help="gt_oracle and pnp: the tuning set's seed")
+    parser.add_argument("--seed", type=int, default=2, help="gt_oracle and pnp: the held-out set's seed")
+    g = parser.add_argument_group("gt_oracle (the paper's Noisy backend on a simulated sequence)")
+    g.add_argument("--oracle-motion", default="circular", choices=("translational", "circular"))
+    g.add_argument("--oracle-level", default="medium", choices=("easy", "medium", "hard"))
+    g.add_argument("--oracle-answers", type=int, default=1000, help="frames asked, evenly over the sequence")
+    g.add_argument("--noise-t-m", type=float, default=0.003)
+    g.add_argument("--noise-r-deg", type=float, default=0.3)
+    g = parser.add_argument_group("pnp (the default object's keypoints projected at random poses, noisy)")
+    g.add_argument("--pnp-answers", type=int, default=1000, help="held-out solves")
+    g.add_argument("--pnp-tune-answers", type=int, default=4000, help="tuning solves")
+    g.add_argument("--pnp-noise-px", type=float, default=1.0, help="keypoint noise per coordinate, px")
+    g.add_argument("--pnp-outliers", type=float, default=0.3, help="share of frames with one keypoint 15-60 px off")
+    g = parser.add_argument_group("pvnet (rendered frames of the default object, `flextrack train pvnet-eval`'s)")
+    g.add_argument("--pvnet-frames", type=int, default=200, help="frames per set")
+    g.add_argument("--pvnet-tune-seeds", type=int, nargs="+", default=[777, 778],
+                   help="tuning frames, --pvnet-frames per seed (777: pvnet-eval's tuning seed)")
+    g.add_argument("--pvnet-seed", type=int, default=20261122, help="held-out frames (pvnet-eval's default)")
+    g.add_argument("--jpeg", type=int, default=90, help="JPEG quality the frames are sent at (0: as rendered)")
+    g.add_argument("--model", type=Path, help="PVNet ONNX (default: the shipped model)")
+
+
+def _provenance() -> dict:
+    import datetime
+    import platform
+    import subprocess
+
+    def git(*cmd: str) -> str:
+        done = subprocess.run(["git", *cmd], cwd=Path(__file__).resolve().parent, capture_output=True, text=True,
+                              check=False)
+        return done.stdout.strip() if done.returncode == 0 else ""
+
+    return {"commit": git("rev-parse", "HEAD") or None,
+            "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
+            "host": platform.node(), "python": platform.python_version(),
+            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
+
+
+def _entry(name: str, tune: list[dict], held: list[dict], stored: float, max_px: float, **extra) -> dict:
+    """Held-out summaries (all answers and those under max_px) and the factor the tuning set asks for:
+    the raw formula's mean NEES / 6 there (the NEES with the stored factor times that factor)."""
+    good = lambda rows: [r for r in rows if r["proj_px"] < max_px]
+    fitted = inflation_factor([r["nees"] * stored for r in good(tune)]) if tune else None
+    return {"estimator": name, "stored_inflation": stored, "fitted_inflation": fitted,
+            "tuning_answers": len(good(tune)), "heldout_all": summarise(r["nees"] for r in held),
+            "heldout_below_max_2d": summarise(r["nees"] for r in good(held)), **extra, "answers": held}
+
+
+def run(args) -> int:
+    import json
+    import sys
+    import time
+
+    started = time.perf_counter()
+    result = {"command": "flextrack evaluate nees " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else
+              "flextrack evaluate nees", "options": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
+              **_provenance(), "estimators": []}
+    entries = result["estimators"]
+    try:
+        if "gt_oracle" in args.estimators:
+            entries.append(_gt_oracle(args))
+        if "pnp" in args.estimators:
+            entries.append(_pnp(args))
+        if "pvnet" in args.estimators:
+            entries.extend(_pvnet(args))
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"flextrack evaluate nees: {exc}", file=sys.stderr)
+        return 2
+    result["seconds"] = round(time.perf_counter() - started, 1)
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / "nees.json"
+    path.write_text(json.dumps(result, indent=1))
+    print(table(entries, args.max_2d_px))
+    print(f"wrote {path} ({result['seconds']:.0f} s; commit {result['commit'] or '?'}{' dirty' if result['dirty'] else ''})")
+    return 0 if all(e["heldout_below_max_2d"]["passed"] for e in entries) else 1
+
+
+def _gt_oracle(args) -> dict:
+    """Tuning and held-out: a sequence and a noise seed each (--tune-seed, --seed)."""
+    from flextrack.simulator.generate import generate_sequence
+
+    sets = {}
+    for role, seed in (("tune", args.tune_seed), ("held", args.seed)):
+        root = args.out / "sequences" / f"{args.oracle_motion}_{args.oracle_level}_seed{seed}"
+        if not (root / "rig.yaml").is_file():
+            generate_sequence(args.oracle_motion, args.oracle_level, root, fps=60.0, seed=seed)
+        sets[role] = gt_oracle_answers(root, args.noise_t_m, args.noise_r_deg, seed, args.oracle_answers)
+    return _entry("gt_oracle", sets["tune"], sets["held"], 1.0, args.max_2d_px,
+                  settings={"noise_t_m": args.noise_t_m, "noise_r_deg": args.noise_r_deg, "fps": 60,
+                            "sequence": f"{args.oracle_motion} {args.oracle_level}"})
+
+
+def _pnp(args) -> dict:
+    from estimators.objects import ObjectRegistry
+    from estimators.pnp import PnpEstimator
+
+    obj = _default_object()
+    estimator = PnpEstimator(ObjectRegistry([obj]))
+    kw = {"noise_px": args.pnp_noise_px, "outlier_share": args.pnp_outliers, "estimator": estimator, "obj": obj}
+    return _entry("pnp", pnp_answers(args.pnp_tune_answers, args.tune_seed, **kw),
+                  pnp_answers(args.pnp_answers, args.seed, **kw), estimator.inflation, args.max_2d_px,
+                  settings={"noise_px": args.pnp_noise_px, "outlier_share": args.pnp_outliers, "keypoints": len(obj.keypoints)})
+
+
+def _pvnet(args) -> list[dict]:
+    """The default estimator (pose refined on the outline: the refinement's covariance) and the same
+    with refine = false (PnP's pose: the voted keypoints' covariance), on the same frames."""
+    import sys
+
+    from estimators.objects import ObjectRegistry, load_object
+    from estimators.pvnet import PvnetEstimator
+    from flextrack import assets
+
+    object_path = assets.default_object_model()
+    obj = load_object("default", object_path)
+    model = args.model or assets.pvnet_model_path()
+    estimators = {"pvnet": PvnetEstimator(ObjectRegistry([obj]), model),
+                  "pvnet refine=false": PvnetEstimator(ObjectRegistry([obj]), model, refine=False)}
+    jpeg = args.jpeg or None
+    sets = {"tune": {name: [] for name in estimators}}
+    for role, seed in [("tune", s) for s in args.pvnet_tune_seeds] + [("held", args.pvnet_seed)]:
+        def progress(i, seed=seed):
+            if i % 50 == 0:
+                print(f"pvnet frames of seed {seed}: {i}/{args.pvnet_frames}", file=sys.stderr, flush=True)
+        rows = pvnet_answers(args.pvnet_frames, seed, jpeg, estimators, obj, object_path, progress)
+        if role == "held":
+            sets["held"] = rows
+        else:
+            for name in estimators:
+                sets["tune"][name] += rows[name]
+    settings = {"frames": args.pvnet_frames, "jpeg": jpeg, "model": str(model)}
+    return [_entry("pvnet", sets["tune"]["pvnet"], sets["held"]["pvnet"], estimators["pvnet"].refine_inflation,
+                   args.max_2d_px, settings=settings, covariance="refinement"),
+            _entry("pvnet refine=false", sets["tune"]["pvnet refine=false"], sets["held"]["pvnet refine=false"],
+                   estimators["pvnet refine=false"].keypoint_inflation, args.max_2d_px, settings=settings,
+                   covariance="voted keypoints")]
+
+
+def table(entries: list[dict], max_px: float) -> str:
+    """The held-out figures as a Markdown table."""
+    lines = ["| estimator | answers | N | mean NEES | 95 % interval | median | share > 12.59 | pass | inflation (fitted) |",
+             "|---|---|---:|---:|---|---:|---:|---|---|"]
+    for e in entries:
+        for label, key in (("all", "heldout_all"), (f"2D < {max_px:g} px", "heldout_below_max_2d")):
+            s = e[key]
+            if not s["n"]:
+                lines.append(f"| {e['estimator']} | {label} | 0 | - | - | - | - | - | |")
+                continue
+            fitted = "-" if e["fitted_inflation"] is None else f"{e['fitted_inflation']:.3g}"
+            lines.append(f"| {e['estimator']} | {label} | {s['n']} | {s['mean']:.2f} | [{s['interval'][0]:.2f}, "
+                         f"{s['interval'][1]:.2f}] | {s['median']:.2f} | {100 * s['share_above_q95']:.1f} % | "
+                         f"{'yes' if s['passed'] else 'NO'} | {e['stored_inflation']:g} ({fitted}) |")
+    return "\n".join(lines)
