@@ -7,7 +7,9 @@ from __future__ import annotations
 import threading
 
 import numpy as np
+import pytest
 
+from client_sdk import TrackerOptions
 from client_sdk.interceptor import MAX_KEPT, LatencyInterceptor
 from client_sdk.transport import TrackClient, TransportOptions, make_request
 from estimators.base import EstimateInput, EstimateOutput, Estimator, Status
@@ -103,11 +105,12 @@ def test_the_interceptor_keeps_a_bounded_number_of_frames():
     assert len(replay.stamps) == MAX_KEPT and replay.pop_stamp(9_999) is not None and not replay._uplinks
 
 
-def test_the_tracker_keeps_its_imu_buffer_bounded_over_a_long_run():
+@pytest.mark.parametrize("fusion", ["filter", "paper"])
+def test_the_tracker_keeps_its_imu_buffer_bounded_over_a_long_run(fusion):
     """The tracker's per-sample buffer holds its horizon (imu_buffer_s), not the session: 60 s or 20 s alike."""
     sizes = []
     for duration_s in (20.0, 60.0):
-        run = drive(Motion(), duration_s=duration_s, fps=60.0)
+        run = drive(Motion(), TrackerOptions(fusion=fusion), duration_s=duration_s, fps=60.0)
         sizes.append(len(run.tracker._buf))
     bound = 1.5 * 200.0 * run.tracker.options.imu_buffer_s + 2  # trimmed in chunks: up to 1.5 horizons kept
     assert max(sizes) <= bound

@@ -26,6 +26,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fps", type=float, default=60.0, help="camera frame rate")
     parser.add_argument("--sample-s", type=float, default=10.0, help="seconds between two RSS samples")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--fusion", choices=["filter", "paper"], default="filter",
+                        help="the tracker core (TrackerOptions.fusion): the error-state filter or the paper's PRM")
     parser.add_argument("--csv", type=Path, help="also write the samples here")
 
 
@@ -66,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
                           f'sequence_roots = ["{root}"]\n')
         server = start_serve(["--config", str(config), "--drain-s", "0"])
         try:
-            samples = _device(seq, server.address, args.sample_s)
+            samples = _device(seq, server.address, args.sample_s, args.fusion)
         finally:
             server.stop()
     half = [s for s in samples if s["t_s"] >= samples[-1]["t_s"] / 2]
@@ -82,9 +84,9 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _device(seq, address: str, sample_s: float) -> list[dict]:
+def _device(seq, address: str, sample_s: float, fusion: str) -> list[dict]:
     """The device's loop in real time; returns the samples it printed."""
-    from client_sdk import Tracker, TrackerOptions
+    from client_sdk import TrackerOptions, create_tracker
     from client_sdk.interceptor import LatencyInterceptor
     from client_sdk.transport import TrackClient, make_request
     from flextrack import wire
@@ -93,7 +95,8 @@ def _device(seq, address: str, sample_s: float) -> list[dict]:
     from flextrack.runners.session import model_vertices
     from flextrack.v1 import pose_estimation_pb2 as pb
 
-    tracker = Tracker(TrackerOptions(), seq.camera, seq.T_BC, bbox_corners(model_vertices(seq)))
+    tracker = create_tracker(TrackerOptions(fusion=fusion), seq.camera, seq.T_BC, bbox_corners(model_vertices(seq)))
+    print(f"tracker core: {type(tracker).__name__}")
     image = stand_in_jpeg(seq.camera.width, seq.camera.height)
     interceptor = LatencyInterceptor(live=True)
     inbox: queue.Queue = queue.Queue()
