@@ -141,9 +141,15 @@ async def start_server(host: str, port: int, executor: ThreadPoolExecutor,
     if bound == 0:
         raise PortInUse(f"cannot listen on {address}: the port is in use (another server holds it) or the address "
                         f"is not one of this host's")
-    await server.start()
-    return RunningServer(server, bound, servicer, health_servicer, hardening,
-                         hardening.start_metrics() if hardening else None)
+    metrics_http = hardening.start_metrics() if hardening else None  # before start: a taken port stops nothing
+    try:
+        await server.start()
+    except BaseException:
+        if metrics_http is not None:
+            metrics_http.shutdown()
+            metrics_http.server_close()
+        raise
+    return RunningServer(server, bound, servicer, health_servicer, hardening, metrics_http)
 
 
 def _probe_bind(host: str, port: int, address: str) -> None:

@@ -265,3 +265,18 @@ def test_metrics_listen_on_the_configured_address_and_serve_only_metrics():
             with pytest.raises(urllib.error.HTTPError) as err:
                 urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=5)
             assert err.value.code == 404
+
+
+def test_a_taken_metrics_port_stops_serve_with_one_line():
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    with socket.socket() as other:
+        other.bind(("127.0.0.1", 0))
+        other.listen()
+        done = subprocess.run([sys.executable, "-m", "flextrack", "serve", "--port", "0", "--metrics-port",
+                               str(other.getsockname()[1])], cwd=Path(__file__).resolve().parent.parent,
+                              capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 1 and done.stderr.splitlines() == [done.stderr.strip()], done.stderr
+    assert "cannot serve /metrics" in done.stderr
