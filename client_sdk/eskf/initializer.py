@@ -4,7 +4,7 @@ A still window measures gravity in the body frame (minus the mean accelerometer)
 (the mean gyro) well. A moving one still gives gravity's direction: carried back from the pose by
 the gyro, the specific forces average to -g_O over a window in which the device's own acceleration
 averages out (hand motion: ~0.1-0.3 m/s^2 over half a second), so the filter starts from that with
-an honest tilt uncertainty (`init_gravity_std`) and the answers that follow refine it. Velocity
+an honest uncertainty (`init_gravity_std`, its norm standard gravity's) and the answers that follow refine it. Velocity
 starts at zero with `init_velocity_std` (near zero when still).
 """
 
@@ -15,7 +15,7 @@ import numpy as np
 from client_sdk import initialization
 from client_sdk.eskf.options import FilterOptions
 from client_sdk.eskf.pose_update import pose_jacobian, skew
-from client_sdk.eskf.state import BA, BG, TD, TH, FilterState, G, N, V, gravity_basis
+from client_sdk.eskf.state import BA, BG, TD, TH, FilterState, G, N, V
 from client_sdk.propagation import NS, rotate
 
 STANDARD_GRAVITY = 9.80665
@@ -61,12 +61,11 @@ def initial_state(x_pose: tuple, T_CO_sigma: np.ndarray, window: list[tuple], R_
     if options.gravity_state:
         # g_O = R_OB (b_a - f_mean) moves with the first pose's orientation error and with the accelerometer
         # bias the window could not tell from gravity: d_g = J_th d_theta + J_ba d_ba + noise
-        B = np.array(gravity_basis(c[6:9])).reshape(2, 3)
         R = np.array(R_OB).reshape(3, 3)
-        J = np.zeros((2, N))
-        J[:, TH] = -B @ R @ skew(R.T @ g_O)
-        J[:, BA] = B @ R
-        cross, gg = J @ cov, J @ cov @ J.T + np.eye(2) * g_std ** 2
+        J = np.zeros((3, N))
+        J[:, TH] = -R @ skew(R.T @ g_O)
+        J[:, BA] = R
+        cross, gg = J @ cov, J @ cov @ J.T + np.eye(3) * g_std ** 2
         cov[G, :], cov[:, G] = cross, cross.T
         cov[G, G] = gg
     cov[TD, TD] = options.time_offset_std_s ** 2

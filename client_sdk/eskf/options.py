@@ -22,9 +22,8 @@ class FilterOptions:
     """m/s^2/sqrt(Hz)."""
     accelerometer_random_walk: float = 1.0e-3
     """m/s^3/sqrt(Hz)."""
-    noise_inflation: float = 2.0
-    """Multiplies the IMU densities above: the discrete-time model (first-order transition, rates held
-    over a sample) and a yaml's lab figures understate what a hand-held phone's IMU does in use."""
+    noise_inflation: float = 1.0
+    """Multiplies the IMU densities above (> 1 when a yaml's lab figures understate the sensor in use)."""
 
     # --- Initial uncertainty (1 sigma, per axis) ---
     init_velocity_std: float = 0.3
@@ -35,11 +34,12 @@ class FilterOptions:
     """m/s^2: a still window cannot tell it from gravity (the two start correlated); a phone's
     uncalibrated zero-g level reaches 0.4 m/s^2."""
     init_gravity_std: float = 0.3
-    """m/s^2, per tangent axis of g_O, when gravity comes from a moving device's IMU window (~1.8 deg)."""
+    """m/s^2, per axis of g_O, when gravity comes from a moving device's IMU window (~1.8 deg)."""
     still_gravity_std: float = 0.03
-    """m/s^2, the same from a still window (the accelerometer bias is then the main error)."""
+    """m/s^2, the same from a still window, beside the errors it shares with the first pose's orientation
+    and the accelerometer bias (modelled as correlations)."""
     gravity_state: bool = True
-    """False: g_O fixed at initialisation (the ablation "no gravity-direction state")."""
+    """False: g_O fixed at initialisation (the ablation "no gravity state")."""
 
     # --- Camera-IMU time offset (t_imu = t_camera + offset) ---
     time_offset_s: float = 0.0
@@ -60,6 +60,12 @@ class FilterOptions:
     max_rejections: int = 3
     """This many rejected answers in a row mean the filter, not the backend, is wrong: re-initialise
     from the next one."""
+
+    # --- What a frame shows ---
+    ease_s: float = 0.03
+    """Time constant (s) over which a correction's jump of the shown pose is eased in (0: at once). The
+    filter's state takes each answer at once; only the pose a frame reports glides, trading a little
+    accuracy for less visible shake."""
 
     # --- Status from the covariance ---
     max_sigma_px: float = 6.0

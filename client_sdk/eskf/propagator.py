@@ -3,10 +3,10 @@
 Continuous-time error dynamics, with w = w_m - b_g and a = a_m - b_a (body frame):
 
     d_theta' = -[w]x d_theta - d_bg - n_g        d_p' = d_v
-    d_v'     = -R [a]x d_theta - R d_ba + B d_g - R n_a
+    d_v'     = -R [a]x d_theta - R d_ba + d_g - R n_a
     d_bg'    = n_wg        d_ba' = n_wa         d_g' = 0       d_td' = 0
 
-discretised to first order, Phi = I + A dt, Q = diag(sigma^2 dt) with Kalibr's densities. The 39
+discretised to first order, Phi = I + A dt, Q = diag(sigma^2 dt) with Kalibr's densities. The 36
 non-trivial entries of Phi are written with one `np.put`: the whole step costs a few microseconds,
 two 18x18 products included.
 """
@@ -32,7 +32,7 @@ _PHI_INDEX = np.array(
     + _flat((3 + k, 6 + k) for k in range(3))  # p-v
     + _flat((6 + r, c) for r in range(3) for c in range(3))  # v-theta
     + _flat((6 + r, 12 + c) for r in range(3) for c in range(3))  # v-ba
-    + _flat((6 + r, 15 + c) for r in range(3) for c in range(2)))  # v-g
+    + _flat((6 + k, 15 + k) for k in range(3)))  # v-g
 _Q_INDEX = np.array(_flat((k, k) for k in (0, 1, 2, 6, 7, 8, 9, 10, 11, 12, 13, 14)))
 
 
@@ -47,7 +47,7 @@ class CovariancePropagator:
                                    + [(k * options.accelerometer_random_walk) ** 2] * 3)
         self._phi = _IDENTITY.copy()
 
-    def transition(self, x: tuple, c: tuple, basis: tuple, dt: float, w: tuple, a: tuple) -> np.ndarray:
+    def transition(self, x: tuple, dt: float, w: tuple, a: tuple) -> np.ndarray:
         """Phi for an interval of dt seconds ending at nominal x, with bias-corrected rates w, a."""
         w0, w1, w2 = w[0] * dt, w[1] * dt, w[2] * dt
         a0, a1, a2 = a
@@ -56,23 +56,20 @@ class CovariancePropagator:
         for i in range(3):
             ri0, ri1, ri2 = r[3 * i], r[3 * i + 1], r[3 * i + 2]
             m += [-(ri1 * a2 - ri2 * a1) * dt, -(ri2 * a0 - ri0 * a2) * dt, -(ri0 * a1 - ri1 * a0) * dt]
-        b = basis
         values = ([1.0, w2, -w1, -w2, 1.0, w0, w1, -w0, 1.0, -dt, -dt, -dt, dt, dt, dt] + m
-                  + [-e * dt for e in r]
-                  + [b[0] * dt, b[3] * dt, b[1] * dt, b[4] * dt, b[2] * dt, b[5] * dt])
+                  + [-e * dt for e in r] + [dt, dt, dt])
         phi = self._phi
         np.put(phi, _PHI_INDEX, values)
         return phi
 
-    def step(self, cov: np.ndarray, x: tuple, c: tuple, basis: tuple, t0_ns: int, t1_ns: int, s0: tuple,
-             s1: tuple) -> np.ndarray:
+    def step(self, cov: np.ndarray, x: tuple, c: tuple, t0_ns: int, t1_ns: int, s0: tuple, s1: tuple) -> np.ndarray:
         """The covariance at t1 from the one at t0; s0, s1 the raw IMU samples around the interval."""
         dt = (t1_ns - t0_ns) * NS
         if dt <= 0:
             return cov
         w = (0.5 * (s0[1] + s1[1]) - c[0], 0.5 * (s0[2] + s1[2]) - c[1], 0.5 * (s0[3] + s1[3]) - c[2])
         a = (0.5 * (s0[4] + s1[4]) - c[3], 0.5 * (s0[5] + s1[5]) - c[4], 0.5 * (s0[6] + s1[6]) - c[5])
-        phi = self.transition(x, c, basis, dt, w, a)
+        phi = self.transition(x, dt, w, a)
         out = phi @ cov @ phi.T
         out.flat[_Q_INDEX] += self._q_density * dt
         return out

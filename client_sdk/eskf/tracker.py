@@ -35,7 +35,7 @@ from client_sdk import state as state_codec
 from client_sdk.eskf.initializer import initial_state
 from client_sdk.eskf.pose_update import pose_covariance, pose_jacobian, update
 from client_sdk.eskf.propagator import CovariancePropagator
-from client_sdk.eskf.state import FilterState, gravity_basis
+from client_sdk.eskf.state import FilterState
 from client_sdk.imu_buffer import ImuBuffer
 from client_sdk.inspection import PoseInspector, Status
 from client_sdk.options import TrackerOptions
@@ -43,6 +43,7 @@ from client_sdk.propagation import step_midpoint
 from client_sdk.refinement import ResponseOutcome
 from client_sdk.state import TrackerState
 from client_sdk.tracker_base import FrameResult, TrackerBase, as_int, check_rigid, imu_sample
+from flextrack.geometry import so3
 from flextrack.geometry.camera import PinholeCamera
 
 _DEG = np.pi / 180.0
@@ -86,12 +87,11 @@ class FilterTracker(TrackerBase):
         self._buf = ImuBuffer(round(o.imu_buffer_s * 1e9))
         self._anchor: tuple[int, FilterState] | None = None  # the state set by the last answer, at its time
         self._td = fo.time_offset_s
-        self._basis_key: tuple | None = None
-        self._basis: tuple = ()
         self._last_frame_t: int | None = None
         self._last_uv: np.ndarray | None = None
         self._corrected = False
         self._rejected = 0  # answers rejected in a row
+        self._ease = (np.zeros(6), 0)  # (pose offset still to ease in, camera time it was set)
         self.last_chi2: float | None = None
 
     # ------------------------------------------------------------------ properties
@@ -124,12 +124,6 @@ class FilterTracker(TrackerBase):
         """The error-state covariance (18x18, `eskf.state` order) at `now_ns`."""
         return None if self._anchor is None else self._full_at(self.now_ns).cov.copy()
 
-    def _basis_of(self, c: tuple) -> tuple:
-        g = c[6:9]
-        if g != self._basis_key:
-            self._basis_key, self._basis = g, gravity_basis(g)
-        return self._basis
-
     # ------------------------------------------------------------------ PPM
     def add_imu(self, t_ns: int, gyro, accel) -> None:
         """Propagate state and covariance to this IMU sample and keep it (ValueError, no change, if bad)."""
@@ -147,7 +141,7 @@ class FilterTracker(TrackerBase):
 
     def _step(self, st: FilterState, t0: int, t1: int, s0: tuple, s1: tuple) -> FilterState:
         x = step_midpoint(st.x, st.c, t0, t1, s0, s1)
-        return FilterState(x, st.c, self._prop.step(st.cov, x, st.c, self._basis_of(st.c), t0, t1, s0, s1))
+        return FilterState(x, st.c, self._prop.step(st.cov, x, st.c, t0, t1, s0, s1))
 
     def _base_at(self, t: int) -> tuple[int, int, FilterState] | None:
         """(buffer index at or before t, base time, base state): the anchor or the stored state before t."""
@@ -262,7 +256,7 @@ class FilterTracker(TrackerBase):
             return self._initializing_frame(t)
         t_imu = self._imu_time(t)
         st = self._nominal_at(t_imu)
-        T_CO = self._T_CO(st.x)
+        T_CO = self._eased(self._T_CO(st.x), t)
         cov = self._pose_covariance(st, t_imu)
         status, detail = Status.FINE, "tracking"
         if o.pia:
@@ -278,6 +272,22 @@ class FilterTracker(TrackerBase):
             request = self._book.issue(t, "refine" if status is Status.FINE else "failure")
         self.status, self.status_detail = status, detail
         return FrameResult(t, T_CO, status, request, cov)
+
+    def _ease_left(self, t: int) -> np.ndarray:
+        offset, t_set = self._ease
+        tau = self.options.filter.ease_s
+        return offset * np.exp(-(t - t_set) * 1e-9 / tau) if tau > 0 else offset * 0.0
+
+    def _eased(self, T_CO: np.ndarray, t: int) -> np.ndarray:
+        """The pose shown at frame time t: the filter's, minus what is left of its recent corrections
+        (`FilterOptions.ease_s`), so that a correction glides in over a few frames instead of jumping."""
+        o = self._ease_left(t)
+        if not o.any():
+            return T_CO
+        T = T_CO.copy()
+        T[:3, :3] = so3.exp(-o[0:3]) @ T_CO[:3, :3]
+        T[:3, 3] = T_CO[:3, 3] - o[3:6]
+        return T
 
     def _last_uv_now(self, t_last: int | None) -> np.ndarray | None:
         """The last frame's corners, re-evaluated on the corrected trajectory after an update (the
@@ -331,8 +341,14 @@ class FilterTracker(TrackerBase):
             return self._outcome(ResponseOutcome.INITIALIZED, f"{self._rejected} backend poses rejected in a row: "
                                  "the filter was wrong; re-initialised from the backend's pose")
         self._rejected = 0
+        t_shown = self._last_frame_t
+        before = self._T_CO(self._nominal_at(self._imu_time(t_shown)).x) if t_shown is not None else None
         self._td = res.td
         self._set_anchor(tau, res.state)
+        if before is not None and fo.ease_s > 0:
+            after = self._T_CO(self._nominal_at(self._imu_time(t_shown)).x)
+            jump = np.concatenate([so3.log(after[:3, :3] @ before[:3, :3].T), after[:3, 3] - before[:3, 3]])
+            self._ease = (self._ease_left(t_shown) + jump, t_shown)
         return self._outcome(ResponseOutcome.APPLIED, "tracking" + note)
 
     def _initialize(self, tau: int, T_CO: np.ndarray, sigma: np.ndarray) -> None:
