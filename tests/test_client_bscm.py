@@ -5,9 +5,9 @@ import pytest
 
 from client_sdk import Status, TrackerOptions
 from client_sdk.refinement import blend_pose, bscm
-from flextrack.benchmarks.tracker_world import BOX_O, CAMERA, G_O, Motion, drive
 from flextrack.geometry import se3, so3
 from flextrack.geometry.metrics import proj_px
+from flextrack.testing.tracker_world import BOX_O, CAMERA, G_O, Motion, drive
 
 B_G = np.array([0.01, -0.02, 0.015])  # rad/s
 B_A = np.array([0.05, -0.08, 0.1])  # m/s^2

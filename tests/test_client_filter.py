@@ -7,8 +7,8 @@ import pytest
 from client_sdk import FilterOptions, FilterTracker, ResponseOutcome, Status, TrackerOptions
 from client_sdk.eskf.state import N
 from flextrack import wire
-from flextrack.benchmarks.tracker_world import BOX_O, CAMERA, T_BC, Motion, drive, noisy_answers
 from flextrack.geometry.metrics import proj_px
+from flextrack.testing.tracker_world import BOX_O, CAMERA, T_BC, Motion, drive, noisy_answers
 
 NOISY_COV = wire.diagonal_covariance(np.radians(0.3), 0.003)
 B_G = np.array([0.003, -0.002, 0.001])

@@ -5,9 +5,9 @@ import pytest
 
 from client_sdk import ResponseOutcome, TrackerOptions
 from client_sdk.propagation import rotate, step_midpoint, step_paper
-from flextrack.benchmarks.tracker_world import BOX_O, CAMERA, G_O, Motion, drive
 from flextrack.geometry import so3
 from flextrack.geometry.metrics import proj_px, re_deg, te_mm
+from flextrack.testing.tracker_world import BOX_O, CAMERA, G_O, Motion, drive
 
 
 def test_rotate_matches_so3_exp_for_small_and_large_angles():

@@ -9,9 +9,9 @@ import pytest
 from client_sdk import ResponseOutcome, Status, Tracker, TrackerOptions
 from client_sdk import state as state_codec
 from client_sdk.propagation import propagate, step_paper
-from flextrack.benchmarks.tracker_world import BOX_O, CAMERA, G_O, T_BC, Motion, drive
 from flextrack.geometry import se3, so3
 from flextrack.geometry.metrics import proj_px
+from flextrack.testing.tracker_world import BOX_O, CAMERA, G_O, T_BC, Motion, drive
 
 MS = 1_000_000
 G_B = np.array([0.3, -9.7, 1.2])  # a still device: the accelerometer reads -g_B

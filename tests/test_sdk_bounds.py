@@ -14,7 +14,7 @@ from client_sdk.interceptor import MAX_KEPT, LatencyInterceptor
 from client_sdk.transport import TrackClient, TransportOptions, make_request
 from estimators.base import EstimateInput, EstimateOutput, Estimator, Status
 from estimators.registry import EstimatorRegistry
-from flextrack.benchmarks.tracker_world import Motion, drive
+from flextrack.testing.tracker_world import Motion, drive
 from flextrack.v1 import pose_estimation_pb2 as pb
 from service.server import BackgroundServer
 

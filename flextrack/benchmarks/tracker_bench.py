@@ -1,6 +1,6 @@
 """The tracker core's figures: per-call timing of PIM, PRM and PPM, and accuracy per configuration.
 
-Timing: the analytic world of `flextrack.benchmarks.tracker_world` (a body circling a box at 1.2 m, 200 Hz
+Timing: the analytic world of `flextrack.testing.tracker_world` (a body circling a box at 1.2 m, 200 Hz
 IMU, a ground-truth backend answering 50 ms after each request, so each PRM call re-propagates
 ~50 ms of IMU). Each operation is timed per call with `time.perf_counter_ns`: PIM = the PIA part of
 `add_frame` (projection, area, offset, decision), add_frame = all of it (pose at the frame, PIA,
@@ -21,9 +21,9 @@ import time
 import numpy as np
 
 from client_sdk import ResponseOutcome, Tracker, TrackerOptions
-from flextrack.benchmarks.tracker_world import BOX_O, CAMERA, T_BC, Motion, drive
 from flextrack.geometry import se3, so3
 from flextrack.geometry.metrics import proj_px, re_deg, te_mm
+from flextrack.testing.tracker_world import BOX_O, CAMERA, T_BC, Motion, drive
 
 PAPER_MS = {"PIM": 0.35, "PRM": 0.86}
 PIXEL2_SLOWDOWN = 3185 / 1294
