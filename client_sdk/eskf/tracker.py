@@ -225,22 +225,21 @@ class FilterTracker(TrackerBase):
 
     def sigma_px(self, T_CO: np.ndarray, cov: np.ndarray) -> float:
         """RMS over the box corners of the 1-sigma 2D uncertainty (px) a pose covariance implies."""
-        R, t = T_CO[:3, :3], T_CO[:3, 3]
-        RX = self._corners_O @ R.T  # (8, 3)
-        Xc = RX + t
-        z = Xc[:, 2]
+        RX = self._corners_O @ T_CO[:3, :3].T  # (8, 3) corners, rotated
+        x, y, z = (RX + T_CO[:3, 3]).T
         if np.any(z <= 1e-6):
             return float("inf")
+        r0, r1, r2 = RX.T
         cam = self.camera
-        # d uv / d e = d uv / d X_c  [-[R X_o]x, I]
-        J = np.zeros((len(Xc), 2, 6))
-        du = np.stack([cam.fx / z, np.zeros_like(z), -cam.fx * Xc[:, 0] / z ** 2], axis=1)
-        dv = np.stack([np.zeros_like(z), cam.fy / z, -cam.fy * Xc[:, 1] / z ** 2], axis=1)
-        for row, d in ((0, du), (1, dv)):
-            J[:, row, 3:6] = d
-            J[:, row, 0:3] = -np.cross(d, RX)  # d^T (-[RX]x) = -(d x RX)^T ... written as a row
-        var = np.einsum("nij,jk,nik->n", J, cov, J)
-        return float(np.sqrt(np.mean(var)))
+        # d uv / d e = d uv / d X_c [-[R X_o]x, I]; per row d, the rotation part is -(d x R X_o)
+        iz = 1.0 / z
+        au, cu = cam.fx * iz, -cam.fx * x * iz * iz  # du = (au, 0, cu)
+        bv, cv = cam.fy * iz, -cam.fy * y * iz * iz  # dv = (0, bv, cv)
+        zero = np.zeros_like(z)
+        J = np.stack([
+            np.stack([-(-cu * r1), -(cu * r0 - au * r2), -(au * r1), au, zero, cu], axis=1),
+            np.stack([-(bv * r2 - cv * r1), -(cv * r0), -(-bv * r0), zero, bv, cv], axis=1)]).reshape(-1, 6)
+        return float(np.sqrt(2.0 * np.mean(np.einsum("ij,jk,ik->i", J, cov, J))))
 
     # ------------------------------------------------------------------ PIM + requests
     def add_frame(self, t_ns: int) -> FrameResult:

@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from client_sdk import ResponseOutcome, Tracker, TrackerOptions
+from client_sdk import ResponseOutcome, TrackerOptions, create_tracker
 from flextrack.geometry import se3, so3
 from flextrack.geometry.metrics import proj_px, re_deg, te_mm
 from flextrack.testing.tracker_world import BOX_O, CAMERA, T_BC, Motion, drive
@@ -30,10 +30,11 @@ PIXEL2_SLOWDOWN = 3185 / 1294
 
 
 def measure(seconds: float = 20.0, imu_hz: float = 200.0, fps: float = 60.0, latency_s: float = 0.05,
-            integrator: str = "paper") -> dict[str, np.ndarray]:
+            integrator: str = "paper", fusion: str = "filter") -> dict[str, np.ndarray]:
     """Per-call times in ns of PIM (inspection inside add_frame), add_frame, PRM and PPM."""
     m = Motion()
-    tracker = Tracker(TrackerOptions(integrator=integrator), CAMERA, T_BC, BOX_O)
+    tracker = create_tracker(TrackerOptions(integrator=integrator, fusion=fusion), CAMERA, T_BC, BOX_O)
+    covariance = np.diag([np.radians(0.3) ** 2] * 3 + [0.003 ** 2] * 3)  # the noisy oracle's, as the filter gets it
     dt_imu, dt_frame, lat = round(1e9 / imu_hz), round(1e9 / fps), round(latency_s * 1e9)
     imu = [(int(t),) + tuple(v.tolist() for v in m.imu(t * 1e-9)) for t in np.arange(1, int(seconds * imu_hz)) * dt_imu]
     times: dict[str, list[int]] = {"PIM": [], "add_frame": [], "PRM": [], "PPM": []}
@@ -44,7 +45,7 @@ def measure(seconds: float = 20.0, imu_hz: float = 200.0, fps: float = 60.0, lat
             _, rid, cap = pending
             T_CO = m.T_CO(cap * 1e-9)
             c0 = clock()
-            outcome = tracker.on_backend_response(rid, cap, T_CO, True)
+            outcome = tracker.on_backend_response(rid, cap, T_CO, True, covariance)
             c1 = clock()
             if outcome is ResponseOutcome.APPLIED:
                 times["PRM"].append(c1 - c0)
@@ -137,7 +138,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seconds", type=float, default=20.0, help="simulated seconds")
     parser.add_argument("--fps", type=float, default=60.0, help="frame rate for the timing run")
     parser.add_argument("--latency-ms", type=float, default=50.0, help="backend answer delay (IMU re-propagated)")
-    parser.add_argument("--integrator", choices=("paper", "midpoint"), default="paper")
+    parser.add_argument("--integrator", choices=("paper", "midpoint"), default="paper",
+                        help="the paper method's integrator (the filter always uses midpoint) (default: %(default)s)")
+    parser.add_argument("--fusion", choices=("filter", "paper"), default="filter",
+                        help="tracker core to time (default: %(default)s)")
     parser.add_argument("--slowdown", type=float, default=PIXEL2_SLOWDOWN, help="device slowdown factor")
     parser.add_argument("--accuracy", action="store_true", help="print the accuracy table instead of timing")
 
@@ -155,9 +159,10 @@ def run(args: argparse.Namespace) -> int:
             print(f"| {name} | " + " | ".join(f"{c[0]:.2f} / {c[1]:.2f} / {c[2]:.2f} (max {c[3]:.2f})"
                                              for c in cells) + " |")
         return 0
-    times = measure(args.seconds, fps=args.fps, latency_s=args.latency_ms / 1e3, integrator=args.integrator)
+    times = measure(args.seconds, fps=args.fps, latency_s=args.latency_ms / 1e3, integrator=args.integrator,
+                    fusion=args.fusion)
     print(f"tracker core timing: {args.seconds:g} s of IMU at 200 Hz, {args.fps:g} FPS, "
-          f"{args.latency_ms:g} ms backend latency, integrator {args.integrator}")
+          f"{args.latency_ms:g} ms backend latency, fusion {args.fusion}, integrator {args.integrator}")
     print(f"| operation | calls | median us | p99 us | median x {args.slowdown:.2f} us | paper (stretched) ms |")
     print("|---|---|---|---|---|---|")
     for r in timing_rows(times, args.slowdown):

@@ -51,12 +51,14 @@ def proj_px_many(T_est: np.ndarray, T_gt: np.ndarray, camera: PinholeCamera, poi
 
 
 def proj_and_jitter_many(T_est: np.ndarray, T_gt: np.ndarray, camera: PinholeCamera, points_O: np.ndarray,
-                         chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
+                         chunk: int = 256, previous: np.ndarray | None = None
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`proj_px` of (F, 4, 4) pose pairs and the jitter: per frame k, the RMS over the points of the
-    change of the 2D error vector (uv_est - uv_gt) from frame k-1 to k, px (NaN for the first), the
-    frame-to-frame shake an AR user sees."""
+    change of the 2D error vector (uv_est - uv_gt) from frame k-1 to k, px, the frame-to-frame shake
+    an AR user sees. `previous`: the error vectors (P, 2) of the frame before the first (None: the
+    first frame's jitter is NaN). Returns (proj, jitter, the last frame's error vectors)."""
     proj, jitter = np.empty(len(T_est)), np.full(len(T_est), np.nan)
-    last = None
+    last = previous
     for s in range(0, len(T_est), chunk):
         uv = []
         for T in (T_est[s:s + chunk], T_gt[s:s + chunk]):
@@ -70,4 +72,4 @@ def proj_and_jitter_many(T_est: np.ndarray, T_gt: np.ndarray, camera: PinholeCam
             prev = np.concatenate([last[None], d[:-1]])
             jitter[s:s + len(d)] = np.sqrt(((d - prev) ** 2).sum(axis=-1).mean(axis=1))
         last = d[-1]
-    return proj, jitter
+    return proj, jitter, last

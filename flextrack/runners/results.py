@@ -50,6 +50,7 @@ class FrameRow:
     ori_deg: float = math.nan
     jitter_px: float = math.nan  # against the previous frame, when both are scored
     nees: float = math.nan  # e^T covariance^-1 e of the pose error e (wire convention)
+    index: int = 0  # position in the record
 
 
 @dataclass
@@ -87,12 +88,13 @@ class TrackRecord:
         self._points = metric_points(self.vertices_O)
 
         self._unscored: list[FrameRow] = []
+        self._last_error: tuple[FrameRow, np.ndarray] | None = None  # the last scored frame's 2D error vectors
 
     def add(self, frame_id: int, t_ns: int, status: str, T_CO: np.ndarray | None, T_gt: np.ndarray | None,
             covariance: np.ndarray | None = None) -> FrameRow:
         """Keep one frame; its errors are computed, in a batch, when first asked for."""
         row = FrameRow(int(frame_id), int(t_ns), status, None if T_CO is None else np.array(T_CO, float),
-                       None if T_gt is None else np.asarray(T_gt, float), covariance)
+                       None if T_gt is None else np.asarray(T_gt, float), covariance, index=len(self.rows))
         self.rows.append(row)
         if row.T_CO is not None and row.T_gt is not None:
             self._unscored.append(row)
@@ -102,31 +104,29 @@ class TrackRecord:
         """Frames with an estimate and a ground truth, their errors filled in."""
         if self._unscored:
             pending, self._unscored = self._unscored, []
-            proj = metrics.proj_px_many(np.stack([r.T_CO for r in pending]), np.stack([r.T_gt for r in pending]),
-                                        self.camera, self._points)
-            for row, px in zip(pending, proj):
+            previous = self._last_error[1] if self._last_error is not None and self._follows(self._last_error[0],
+                                                                                             pending[0]) else None
+            proj, jitter, last = metrics.proj_and_jitter_many(
+                np.stack([r.T_CO for r in pending]), np.stack([r.T_gt for r in pending]), self.camera, self._points,
+                previous=previous)
+            self._last_error = (pending[-1], last)
+            for k, (row, px) in enumerate(zip(pending, proj)):
                 row.proj_px = float(px)
                 row.pos_mm = metrics.te_mm(row.T_CO, row.T_gt)
                 row.ori_deg = metrics.re_deg(row.T_CO, row.T_gt)
+                # jitter only between frames that follow each other (a gap: the shake is not defined)
+                if k == 0 or self._follows(pending[k - 1], row):
+                    row.jitter_px = float(jitter[k])
                 if row.covariance is not None:
                     e = wire.pose_error(row.T_CO, row.T_gt)
                     row.nees = float(e @ np.linalg.solve(row.covariance, e))
         return [r for r in self.rows if r.T_CO is not None and r.T_gt is not None]
 
-    def _fill_jitter(self) -> None:
-        """The jitter of every scored frame whose previous frame was scored too (one pass over the run)."""
-        scored = [i for i, r in enumerate(self.rows) if r.T_CO is not None and r.T_gt is not None]
-        if len(scored) < 2:
-            return
-        rows = [self.rows[i] for i in scored]
-        _, jitter = metrics.proj_and_jitter_many(np.stack([r.T_CO for r in rows]), np.stack([r.T_gt for r in rows]),
-                                                 self.camera, self._points)
-        for k, (i, row) in enumerate(zip(scored, rows)):
-            row.jitter_px = float(jitter[k]) if k and scored[k - 1] == i - 1 else math.nan
+    def _follows(self, earlier: FrameRow, row: FrameRow) -> bool:
+        return row.index == earlier.index + 1
 
     def summarize(self) -> Summary:
         scored = self.scored()  # fills in the errors of every frame
-        self._fill_jitter()
         proj = np.array([r.proj_px for r in scored])
         jitter = np.array([r.jitter_px for r in scored if math.isfinite(r.jitter_px)])
         nees = np.array([r.nees for r in scored if math.isfinite(r.nees)])

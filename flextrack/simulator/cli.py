@@ -24,6 +24,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--imu-profile", choices=sorted(PROFILES), default="pixel2")
     parser.add_argument("--imu-jitter", type=float, default=0.0, help="std of the IMU sampling instants, s")
     parser.add_argument("--still", type=float, default=2.0, help="seconds held still at the start (>= 1)")
+    parser.add_argument("--moving-start", action="store_true", help="the first frame comes 1 s after the motion "
+                        "reached full speed: a tracker starts on a moving device")
+    parser.add_argument("--imu-time-offset", type=float, default=0.0, metavar="S",
+                        help="the IMU stamps its samples S seconds late (camera-IMU time offset) (default: 0)")
     parser.add_argument("--render", action="store_true", help="render every frame now (rgb/, mask/, depth/)")
     parser.add_argument("--no-plots", action="store_true", help="skip the trajectory / IMU pictures")
     parser.add_argument("--out", type=Path, required=True, help="sequence folder to write")
@@ -39,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
             args.motion, args.level, args.out, duration_s=args.duration, fps=args.fps, imu_rate=args.imu_rate,
             seed=args.seed, object_path=None if args.object == "default" else args.object,
             object_id=args.object_id, imu_profile=args.imu_profile, imu_jitter_s=args.imu_jitter,
-            still_s=args.still)
+            still_s=args.still, moving_start=args.moving_start, imu_time_offset_s=args.imu_time_offset)
     except (ValueError, FileNotFoundError) as exc:
         print(f"flextrack simulate: {exc}", file=sys.stderr)
         return 2

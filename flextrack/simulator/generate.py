@@ -9,6 +9,7 @@ the IMU is the body B, the rear camera C sits beside it (T_BC).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -42,9 +43,14 @@ def generate_sequence(motion: str, level: str, out_dir: str | Path, *, duration_
                       fps: float = 120.0, imu_rate: float = 200.0, seed: int = 0,
                       object_path: str | Path | None = None, object_id: str | None = None,
                       imu_profile: str = "pixel2", imu_jitter_s: float = 0.0, T_BC: np.ndarray | None = None,
-                      still_s: float = STILL_S, first_frame_s: float = FIRST_FRAME_S,
-                      render: bool = False) -> Path:
-    """Write the sequence folder `out_dir` and return it (see the module docstring)."""
+                      still_s: float = STILL_S, first_frame_s: float = FIRST_FRAME_S, moving_start: bool = False,
+                      imu_time_offset_s: float = 0.0, render: bool = False) -> Path:
+    """Write the sequence folder `out_dir` and return it (see the module docstring).
+
+    `moving_start`: the first frame comes 1 s after the program reached full speed, so a tracker starts
+    on a moving device (no still window before its first frame). `imu_time_offset_s`: the IMU stamps
+    its samples this late (t_imu = t_camera + offset, the offset a tracker may estimate).
+    """
     if fps <= 0 or imu_rate <= 0 or duration_s <= 0:
         raise ValueError("fps, imu_rate and duration_s must be positive")
     if still_s < 1.0 or not 1.0 <= first_frame_s <= still_s + duration_s:
@@ -62,11 +68,16 @@ def generate_sequence(motion: str, level: str, out_dir: str | Path, *, duration_
     centre_O = np.mean(np.asarray(load_model(model).bounds), axis=0)
     program = MotionProgram(motion, level, seed, still_s=still_s, duration_s=duration_s,
                             target_W=se3.transform_points(T_WO, centre_O[None])[0])
+    if moving_start:
+        first_frame_s = still_s + program.ramp_s + 1.0
+        if first_frame_s >= program.end_s:
+            raise ValueError(f"--moving-start needs a duration over {program.ramp_s + 1.0:g} s")
 
     rng = np.random.default_rng([seed, 0x1A0])
     t_imu = imu.sample_times(0.0, program.end_s, imu_rate, imu_jitter_s, rng)
     body = program.camera(t_imu).attached(se3.inverse(T_BC))
     record = imu.synthesize(t_imu, body, prof, rng)
+    stamped = replace(record.imu, t_ns=record.imu.t_ns + round(imu_time_offset_s * 1e9))
     q_WB = np.array([so3.quat_from_matrix(R) for R in body.R_WX])
     groundtruth = GroundTruth(record.imu.t_ns, body.p_WX, q_WB, body.v_WX, record.bias_gyro, record.bias_accel)
 
@@ -77,7 +88,7 @@ def generate_sequence(motion: str, level: str, out_dir: str | Path, *, duration_
     frame_ids = np.arange(n_frames)
     stats = program.statistics()
     seq = Sequence(
-        root=root, imu=record.imu, imu_noise=prof.noise, frame_ids=frame_ids,
+        root=root, imu=stamped, imu_noise=prof.noise, frame_ids=frame_ids,
         frame_times_ns=np.round(t_frames * 1e9).astype(np.int64),
         gt_T_CO={int(i): T_CW[i] @ T_WO for i in frame_ids}, camera=PinholeCamera.linemod(), T_BC=T_BC,
         T_WO=T_WO, object_id=object_id, bop_obj_id=bop_obj_id, model_path=model, groundtruth=groundtruth,
@@ -86,7 +97,8 @@ def generate_sequence(motion: str, level: str, out_dir: str | Path, *, duration_
                 "motion": motion, "level": level, "seed": int(seed), "duration_s": float(duration_s),
                 "fps": float(fps), "imu_rate_hz": float(imu_rate), "imu_profile": prof.name,
                 "imu_jitter_s": float(imu_jitter_s), "still_s": float(still_s), "ramp_s": program.ramp_s,
-                "first_frame_s": float(first_frame_s), "object": str(object_path or "default"),
+                "first_frame_s": float(first_frame_s), "moving_start": bool(moving_start),
+                "imu_time_offset_s": float(imu_time_offset_s), "object": str(object_path or "default"),
                 "scene_seed": int(seed),
             },
             "times_ns": {"imu_start": int(record.imu.t_ns[0]), "motion_start": round(still_s * 1e9),
