@@ -30,9 +30,10 @@ class FilterOptions:
     """m/s: the device may be moving when tracking starts; the first answers pin the velocity down."""
     init_gyro_bias_std: float = 0.02
     """rad/s: a moving start cannot measure the gyro bias (a still one measures it, see below)."""
-    init_accel_bias_std: float = 0.3
-    """m/s^2: a still window cannot tell it from gravity (the two start correlated); a phone's
-    uncalibrated zero-g level reaches 0.4 m/s^2."""
+    init_accel_bias_std: float = 0.1
+    """m/s^2: twice the calibrated turn-on bias of a phone's accelerometer stream (the simulator's
+    Pixel 2: 0.05; EuRoC's ADIS16448: ~0.08); a still window cannot tell it from gravity (the two
+    start correlated)."""
     init_gravity_std: float = 0.3
     """m/s^2, per axis of g_O, when gravity comes from a moving device's IMU window (~1.8 deg)."""
     still_gravity_std: float = 0.03

@@ -1,4 +1,5 @@
-"""`flextrack experiment table2|ablation|timing|euroc --out DIR`: the paper's experiments, rerun.
+"""`flextrack experiment table2|ablation|timing|euroc|filter --out DIR`: the paper's experiments, rerun,
+and the error-state filter's own checks.
 
 Each writes a Markdown report, CSV tables, PNG plots and TUM trajectories under DIR.
 """
@@ -12,13 +13,13 @@ from pathlib import Path
 
 from flextrack.experiments import paper
 
-EXPERIMENTS = ("table2", "ablation", "timing", "euroc")
+EXPERIMENTS = ("table2", "ablation", "timing", "euroc", "filter")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("experiment", choices=EXPERIMENTS)
     parser.add_argument("--out", type=Path, required=True, help="output folder")
-    parser.add_argument("--seeds", type=int, default=1, help="table2: number of seeds (0..N-1)")
+    parser.add_argument("--seeds", type=int, default=1, help="table2, filter: number of seeds (0..N-1)")
     parser.add_argument("--seed", type=int, default=0, help="ablation, timing, euroc: the seed")
     parser.add_argument("--duration", type=float, default=30.0, help="seconds of motion per simulated sequence")
     parser.add_argument("--fps", type=int, nargs="+", choices=paper.FPS,
@@ -38,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from flextrack.experiments import ablation, euroc, table2, table2_vision, timing  # the sim extra
+    from flextrack.experiments import ablation, euroc, filter_checks, table2, table2_vision, timing  # the sim extra
 
     args.out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
@@ -50,6 +51,8 @@ def run(args) -> int:
             table2.run(args.out, list(range(args.seeds)), args.duration, args.in_process, tuple(args.fps or paper.FPS))
         elif args.experiment == "ablation":
             ablation.run(args.out, args.seed, args.duration, in_process=args.in_process)
+        elif args.experiment == "filter":
+            filter_checks.run(args.out, list(range(args.seeds)), args.duration, args.in_process)
         elif args.experiment == "timing":
             timing.run(args.out, args.seed, args.duration)
         else:
