@@ -38,7 +38,7 @@ class RegionEstimator(Estimator):
                  views_subdivisions: int = 4, contour_points: int = 200, cache_dir: str | Path | None = None,
                  min_confidence: float = 0.3, histogram_px: int = 20, refit_scales: tuple[int, ...] = (2, 1),
                  refits: int = 1, margin_factors: tuple[float, float] = (0.5, 0.5), session_weight: float = 0.5,
-                 retry_below: float = 0.6, retry_margin_factors: tuple[float, float] | None = None):
+                 retry_below: float = 0.45, retry_margin_factors: tuple[float, float] | None = (1.0, 2.0)):
         """`objects`: object id -> ObjectModel (estimators.objects)."""
         super().__init__(name, list(objects))
         self._objects = dict(objects)
