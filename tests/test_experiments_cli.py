@@ -1,7 +1,9 @@
 """`flextrack experiment` end to end on short sequences: the CSV columns the issue fixes, reports, plots."""
 
 import csv
+import json
 
+import numpy as np
 import pytest
 
 from flextrack.cli import main
@@ -53,7 +55,8 @@ def test_ablation_writes_the_agreed_csv_and_the_sawtooth(tmp_path):
     out = tmp_path / "abl"
     assert main(["experiment", "ablation", "--out", str(out), "--duration", "3", "--in-process"]) == 0
     rows = _csv(out / "ablation.csv")
-    assert list(rows[0]) == ["variant", "backend", "motion", "level", "fps", "proj_px"]
+    assert list(rows[0]) == ["variant", "backend", "motion", "level", "fps", "proj_px", "jitter_px", "nees_mean",
+                             "worst_fine_px"]
     variants = {"full", "bscm_pia_off", "imu_only", "filter", "filter_default_covariance", "filter_no_gravity_state"}
     assert {r["variant"] for r in rows} == variants and len(rows) == len(variants) * 2 * 6
     for name in ("ablation.png", "sawtooth.png", "ablation_over_time.png"):
@@ -68,7 +71,7 @@ def test_euroc_writes_the_agreed_csv(tmp_path):
     out = tmp_path / "euroc"
     assert main(["experiment", "euroc", "--out", str(out), "--in-process"]) == 0
     rows = _csv(out / "euroc.csv")
-    assert list(rows[0]) == ["variant", "pos_mm", "ori_deg", "proj_px"]
+    assert list(rows[0]) == ["variant", "pos_mm", "ori_deg", "proj_px", "jitter_px", "nees_mean", "worst_fine_px"]
     assert [r["variant"] for r in rows] == ["full", "bscm_off", "filter"]
 
 
@@ -93,3 +96,17 @@ def test_table2_with_the_pvnet_backend_renders_frames_and_reports_beside_the_ora
 def test_table2_with_an_unknown_backend_says_what_the_config_serves(tmp_path, capsys):
     assert main(["experiment", "table2", "--backend", "nope", "--out", str(tmp_path / "x"), "--duration", "1"]) == 2
     assert "must serve 'nope'" in capsys.readouterr().err
+
+
+def test_filter_checks_write_the_peer_cells_with_provenance(tmp_path, capsys):
+    out = tmp_path / "filter"
+    assert main(["experiment", "filter", "--out", str(out), "--duration", "4", "--in-process"]) == 0
+    rows = _csv(out / "filter.csv")
+    assert {(r["check"], r["fusion"]) for r in rows} == {("peer", "filter"), ("peer", "paper"), ("moving_start", "filter"),
+                                                          ("time_offset_20ms", "filter"), ("still_start", "filter")}
+    filt = [float(r["proj_px"]) for r in rows if r["check"] == "peer" and r["fusion"] == "filter"]
+    paper = [float(r["proj_px"]) for r in rows if r["check"] == "peer" and r["fusion"] == "paper"]
+    assert np.mean(filt) < np.mean(paper)  # even 4 s in, the filter is ahead of the paper's reset
+    record = json.loads((out / "filter.json").read_text())["provenance"]
+    assert record["options"]["seeds"] == [0] and record["date"] and "dirty" in record
+    assert "Peer cells" in capsys.readouterr().out

@@ -27,7 +27,7 @@ from flextrack.experiments import common, paper, plots
 from flextrack.formats import sequence as sequence_io
 from flextrack.runners.replay import ReplayOptions
 
-HEADER = ["variant", "pos_mm", "ori_deg", "proj_px"]
+HEADER = ["variant", "pos_mm", "ori_deg", "proj_px", "jitter_px", "nees_mean", "worst_fine_px"]
 DEFAULT_DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "euroc_v1_02_medium"
 # "full": the paper-faithful tracker; "filter": the error-state Kalman filter (flextrack.experiments.common.FILTER)
 VARIANTS = {"full": common.PAPER_FAITHFUL, "bscm_off": TrackerOptions(fusion="paper", bscm=False),
@@ -53,7 +53,8 @@ def run(out: Path, data: Path = DEFAULT_DATA, seed: int = 0, in_process: bool = 
             record = oracle.run(seq, tracker_options, options)
             scored = record.scored()
             fine = [r for r in scored if r.status == "FINE"]
-            rows.append([variant, *_means(fine)])
+            s = record.summarize()
+            rows.append([variant, *_means(fine), s.jitter_px, s.nees_mean, s.worst_fine_px])
             extra[variant] = (len(fine), len(scored), *_means(scored))
             record.write(out / "trajectories", f"euroc_{variant}")
             t0 = record.rows[0].t_ns

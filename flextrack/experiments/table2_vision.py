@@ -23,7 +23,8 @@ from flextrack import assets
 from flextrack.experiments import common, paper
 from flextrack.runners import session
 
-HEADER = ["motion", "level", "fps", "backend", "seed", "pos_mm", "ori_deg", "proj_px", "fine_pct", "requests"]
+HEADER = ["motion", "level", "fps", "backend", "seed", "pos_mm", "ori_deg", "proj_px", "fine_pct", "requests",
+          "jitter_px", "nees_mean", "worst_fine_px"]
 DEFAULT_CONFIG = assets.default_config_path()
 ORACLE = "gt_oracle"
 LIMIT_PX = 5.0  # the goal for a vision backend on these cells (issue 5)
@@ -54,7 +55,7 @@ def run(out: Path, backend: str, seeds: list[int], duration_s: float = 10.0, fps
                         s = session.track(seq, preset(variant), spec, registry=registry).summarize()
                         fine = 100.0 * s.status_counts.get("FINE", 0) / max(1, s.frames)
                         rows.append([variant, motion, level, fps, name, seed, s.pos_mm, s.ori_deg, s.proj_px, fine,
-                                     s.requests])
+                                     s.requests, s.jitter_px, s.nees_mean, s.worst_fine_px])
                         bar.set_postfix_str(f"{motion}/{level}/{fps}/{name}/{variant}: {s.proj_px:.2f} px")
                         bar.update()
     for variant in variants:
