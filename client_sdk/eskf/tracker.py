@@ -262,6 +262,9 @@ class FilterTracker(TrackerBase):
             uv = self.inspector.project(T_CO)
             status, detail = self.inspector.inspect(uv, self._last_uv_now(t_last), fps)
             self._last_uv = uv
+        age_s = (t_imu - self._anchor[0]) * 1e-9
+        if status is Status.FINE and o.pia and o.backend_after_init and age_s > o.max_backend_age_s:
+            status, detail = Status.TRACKING_LOST, f"no backend pose for {age_s:.1f} s: IMU-only drift"
         if status is Status.FINE:
             sigma = self.sigma_px(T_CO, cov)
             if sigma > o.filter.max_sigma_px:
