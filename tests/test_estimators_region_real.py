@@ -25,7 +25,7 @@ def test_region_on_real_cat_frames_from_10mm_5deg_priors(tmp_path):
     frames = [f for f in bop_frames(LMO_CAT, 6) if f.frame_id in visible][:5]
     assert len(frames) == 5
     obj = load_object("cat", LMO_CAT / "models" / "obj_000006.ply")
-    region = RegionEstimator("region", {"cat": obj}, views_subdivisions=3, cache_dir=tmp_path)
+    region = RegionEstimator("region", {"cat": obj}, views_subdivisions=2, cache_dir=tmp_path)  # 162 views: quick
     result = evaluate(region, frames, parse_levels("10:5"), 2, 0, "cat", obj.vertices, obj.diameter_m, 640, 480,
                       fresh=True)["10mm/5deg"]["summary"]
     assert result["share_proj_5px"] >= 0.7, result

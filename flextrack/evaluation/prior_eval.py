@@ -174,6 +174,8 @@ def evaluate(estimator, frames: list[Frame], levels: list[PriorLevel], draws: in
                     status, message = ans.status.value, ans.message
                 except EstimatorError as exc:
                     ans, status, message = None, "REFUSED", str(exc)
+                except Exception as exc:  # noqa: BLE001 - the service answers INTERNAL; counted, shown, not fatal
+                    ans, status, message = None, "INTERNAL", f"{type(exc).__name__}: {exc}"
                 ms = (time.perf_counter() - start) * 1e3
                 cpu_ms = (time.process_time() - cpu_start) * 1e3  # this process's CPU: with one thread, one core's
                 ok = ans is not None and ans.status == Status.OK and ans.T_CO is not None
