@@ -58,7 +58,9 @@ def test_serve_help_lists_its_options():
     done = subprocess.run(check=False, args=[sys.executable, "-m", "flextrack", "serve", "--help"], cwd=REPO, capture_output=True,
                           text=True, timeout=60)
     assert done.returncode == 0
-    for option in ("--port", "--config", "--host", "--max-message-mb", "--log-level", "--check", "--gil-switch-ms"):
+    for option in ("--port", "--config", "--host", "--max-message-mb", "--log-level", "--check", "--gil-switch-ms",
+                   "--insecure-public", "--drain-s", "--metrics-host", "--max-image-pixels", "--max-name-chars",
+                   "--max-keypoints"):
         assert option in done.stdout
 
 
