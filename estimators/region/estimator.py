@@ -6,6 +6,7 @@ those with a global estimator.
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -58,6 +59,7 @@ class RegionEstimator(Estimator):
         self.retry_margin_factors = tuple(retry_margin_factors) if retry_margin_factors else None
         self.session_weight = session_weight
         self._models: dict[str, ViewpointModel] = {}
+        self._models_lock = threading.Lock()
         self.sessions: SessionStore[ColourHistograms] = SessionStore(
             lambda: ColourHistograms(bins, learning_rate, learning_rate), max_sessions, max_session_age_s)
 
@@ -79,14 +81,15 @@ class RegionEstimator(Estimator):
         return 0.5 * self._objects[object_id].diameter_m
 
     def viewpoint_model(self, object_id: str) -> ViewpointModel:
-        """Built on first use (or read from the disk cache), then kept."""
-        if object_id not in self._models:
-            obj = self._objects[object_id]
-            if len(obj.faces) == 0:
-                raise InvalidInput(f"object '{object_id}' has no mesh faces; the region estimator needs them")
-            self._models[object_id] = cached_viewpoint_model(obj.vertices, obj.faces, self.cache_dir,
-                                                             **self.view_options)
-        return self._models[object_id]
+        """Built on first use (or read from the disk cache), then kept; once, whatever the threads."""
+        with self._models_lock:
+            if object_id not in self._models:
+                obj = self._objects[object_id]
+                if len(obj.faces) == 0:
+                    raise InvalidInput(f"object '{object_id}' has no mesh faces; the region estimator needs them")
+                self._models[object_id] = cached_viewpoint_model(obj.vertices, obj.faces, self.cache_dir,
+                                                                 **self.view_options)
+            return self._models[object_id]
 
     def _histogram_samples(self, frame: CellImage, lines, margin_fg: float = 1.0,
                            margin_bg: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
