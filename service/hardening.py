@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import ssl
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -50,7 +51,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--metrics-port", type=int, default=0, help="serve Prometheus /metrics on this port (0 = off)")
     group.add_argument("--metrics-host", default="127.0.0.1",
                        help="address /metrics listens on: loopback by default; 0.0.0.0 for a scraper on another host "
-                            "(plain HTTP, no token: keep it on a private network, docs/operations.md)")
+                            "(plain HTTP, no token, unless --metrics-auth: keep it on a private network)")
+    group.add_argument("--metrics-auth", action="store_true",
+                       help="/metrics takes the bearer tokens of --token-file and, with --tls-cert, HTTPS with the "
+                            "same certificate (Prometheus: authorization credentials_file, scheme https)")
     limits = parser.add_argument_group("request limits (checked before any work; docs/operations.md)")
     limits.add_argument("--max-image-pixels", type=int, default=RequestLimits.max_image_pixels,
                         help="largest image (width x height, from the JPEG/PNG header, before decoding) a request may "
@@ -75,6 +79,7 @@ class Hardening:
     metrics_port: int = 0
     metrics_host: str = "127.0.0.1"
     limits: RequestLimits = field(default_factory=RequestLimits)
+    metrics_auth: bool = False  # /metrics behind the tokens and TLS of the gRPC port
     metrics: ServiceMetrics = field(default_factory=ServiceMetrics)
     admission: AdmissionInterceptor | None = None
 
@@ -83,6 +88,8 @@ class Hardening:
             raise ValueError("TLS needs both --tls-cert and --tls-key")
         if self.client_ca is not None and self.tls_cert is None:
             raise ValueError("--client-ca (mutual TLS) needs --tls-cert and --tls-key")
+        if self.metrics_auth and not (self.tokens or self.tls_cert):
+            raise ValueError("--metrics-auth needs --token-file or --tls-cert/--tls-key to protect /metrics with")
         if self.max_batch < 1 or self.batch_delay_ms < 0 or self.metrics_port < 0:
             raise ValueError("--max-batch >= 1, --batch-delay-ms >= 0 and --metrics-port >= 0 are required")
         self.admission = AdmissionInterceptor(self.max_queue, self.metrics, max_streams=self.max_streams,
@@ -95,7 +102,7 @@ class Hardening:
         limits = RequestLimits(args.max_name_chars, args.max_keypoints, args.max_image_pixels)
         hardening = cls(args.tls_cert, args.tls_key, args.client_ca, tokens, args.max_queue, args.max_streams,
                         args.retry_pushback_ms, args.max_batch, args.batch_delay_ms, args.metrics_port,
-                        args.metrics_host, limits)
+                        args.metrics_host, limits, args.metrics_auth)
         hardening.credentials()  # reads and checks the PEM files
         return hardening
 
@@ -133,10 +140,18 @@ class Hardening:
         """Start /metrics when a port is set; returns the HTTP server (or None)."""
         if not self.metrics_port:
             return None
+        authorize, tls = None, None
+        if self.metrics_auth:
+            if self.tokens:
+                authorize = security.BearerTokenInterceptor(self.tokens).is_valid
+            if self.tls_cert is not None:
+                tls = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+                tls.load_cert_chain(self.tls_cert, self.tls_key)
         try:
-            http_server, _ = self.metrics.serve_http(self.metrics_port, self.metrics_host)
+            http_server, _ = self.metrics.serve_http(self.metrics_port, self.metrics_host, authorize, tls)
         except OSError as exc:
             raise OSError(f"cannot serve /metrics on {self.metrics_host}:{self.metrics_port}: "
                           f"{exc.strerror or exc}") from None
-        log.info("metrics", extra={"address": f"{self.metrics_host}:{self.metrics_port}", "path": "/metrics"})
+        log.info("metrics", extra={"address": f"{self.metrics_host}:{self.metrics_port}", "path": "/metrics",
+                                   "token": bool(authorize), "tls": tls is not None})
         return http_server

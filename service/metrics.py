@@ -20,7 +20,9 @@ names so), never the client's raw string, so that unknown names cannot grow the 
 
 from __future__ import annotations
 
+import ssl
 import threading
+from collections.abc import Callable
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, generate_latest
@@ -81,14 +83,23 @@ class ServiceMetrics:
                 total += sample.value
         return total
 
-    def serve_http(self, port: int, host: str = "127.0.0.1"):
-        """Expose /metrics (and nothing else) on host:port in a daemon thread; returns (http server, thread)."""
+    def serve_http(self, port: int, host: str = "127.0.0.1", authorize: Callable[[str | None], bool] | None = None,
+                   tls: ssl.SSLContext | None = None):
+        """Expose /metrics (and nothing else) on host:port in a daemon thread; returns (http server, thread).
+
+        `authorize(authorization header or None)`: when given, a scrape it refuses gets 401; `tls`: HTTPS."""
         registry = self.registry
 
         class Handler(BaseHTTPRequestHandler):
             def do_GET(self) -> None:  # http.server calls it by this name
                 if self.path.split("?", 1)[0] != METRICS_PATH:
                     self.send_error(404, "only /metrics is served here")
+                    return
+                if authorize is not None and not authorize(self.headers.get("Authorization")):
+                    self.send_response(401)
+                    self.send_header("WWW-Authenticate", 'Bearer realm="metrics"')
+                    self.send_header("Content-Length", "0")
+                    self.end_headers()
                     return
                 body = generate_latest(registry)
                 self.send_response(200)
@@ -100,8 +111,23 @@ class ServiceMetrics:
             def log_message(self, *args) -> None:  # no access lines on stderr: the log is JSON lines
                 pass
 
-        server = ThreadingHTTPServer((host, port), Handler)
+        server = (_TlsHttpServer if tls is not None else ThreadingHTTPServer)((host, port), Handler)
+        server.tls = tls
         server.daemon_threads = True
         thread = threading.Thread(target=server.serve_forever, name="metrics-http", daemon=True)
         thread.start()
         return server, thread
+
+
+class _TlsHttpServer(ThreadingHTTPServer):
+    """HTTPS: each connection's TLS handshake runs in its own thread, so a slow client holds no other scrape."""
+
+    tls: ssl.SSLContext
+
+    def finish_request(self, request, client_address) -> None:
+        request.settimeout(10.0)
+        try:
+            request = self.tls.wrap_socket(request, server_side=True)
+        except (OSError, ssl.SSLError):
+            return  # a failed handshake: nothing to answer
+        super().finish_request(request, client_address)

@@ -280,3 +280,31 @@ def test_a_taken_metrics_port_stops_serve_with_one_line():
                               capture_output=True, text=True, timeout=60, check=False)
     assert done.returncode == 1 and done.stderr.splitlines() == [done.stderr.strip()], done.stderr
     assert "cannot serve /metrics" in done.stderr
+
+
+def test_metrics_auth_takes_the_servers_token_and_tls(tmp_path):
+    trustme = pytest.importorskip("trustme", reason="trustme (dev extra) makes the test certificates")
+    import ssl
+
+    ca = trustme.CA()
+    leaf = ca.issue_cert("127.0.0.1")
+    cert, key = tmp_path / "server.pem", tmp_path / "server.key"
+    leaf.cert_chain_pems[0].write_to_path(cert)
+    leaf.private_key_pem.write_to_path(key)
+    with pytest.raises(ValueError, match="--metrics-auth needs"):
+        Hardening(metrics_auth=True)
+    port = _free_port()
+    hardening = Hardening(tls_cert=cert, tls_key=key, tokens=["metrics-token"], metrics_port=port, metrics_auth=True)
+    context = ssl.create_default_context()
+    ca.configure_trust(context)
+    url = f"https://127.0.0.1:{port}/metrics"
+    with BackgroundServer(EstimatorRegistry([ImageEstimator()]), grace_s=0.0, hardening=hardening):
+        for header in (None, "Bearer wrong", "metrics-token"):
+            request = urllib.request.Request(url, headers={"Authorization": header} if header else {})
+            with pytest.raises(urllib.error.HTTPError) as err:
+                urllib.request.urlopen(request, timeout=5, context=context)
+            assert err.value.code == 401
+        request = urllib.request.Request(url, headers={"Authorization": "Bearer metrics-token"})
+        assert b"flextrack_streams" in urllib.request.urlopen(request, timeout=5, context=context).read()
+        with pytest.raises(OSError):  # plain HTTP is not served (reset or refused)
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5)
