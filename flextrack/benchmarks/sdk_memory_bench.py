@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
         config = Path(tmp) / "server.toml"
         config.write_text(f'[[estimators]]\nname = "gt"\nkind = "gt_oracle"\n[estimators.params]\n'
                           f'sequence_roots = ["{root}"]\n')
-        server = start_serve(["--config", str(config), "--drain-s", "0"])
+        server = start_serve(["--config", str(config)])
         try:
             samples = _device(seq, server.address, args.sample_s, args.fusion)
         finally:

@@ -94,11 +94,13 @@ def wait_serving(address: str, timeout_s: float = 60.0, process: subprocess.Pope
 
 def start_serve(serve_args: list[str], name: str = "flextrack", port: int | None = None,
                 log_path: Path | None = None, cpus: set[int] | None = None) -> ServerProcess:
-    """`flextrack serve --host 127.0.0.1 --port P ARGS...` in a child process, returned once SERVING
-    (and pinned to `cpus`, when given)."""
+    """`flextrack serve --host 127.0.0.1 --port P --drain-s 0 ARGS...` in a child process, returned once SERVING
+    (and pinned to `cpus`, when given). No drain on SIGTERM: nothing balances load away from a benchmark's server
+    (ARGS may still give one)."""
     port = port or free_port()
     address = f"127.0.0.1:{port}"
-    command = [sys.executable, "-m", "flextrack", "serve", "--host", "127.0.0.1", "--port", str(port), *serve_args]
+    command = [sys.executable, "-m", "flextrack", "serve", "--host", "127.0.0.1", "--port", str(port),
+               "--drain-s", "0", *serve_args]
     if log_path:
         with open(log_path, "ab") as log:  # the child keeps its own copy of the file descriptor
             process = subprocess.Popen(command, stdout=log, stderr=log)
