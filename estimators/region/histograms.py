@@ -1,9 +1,11 @@
 """Foreground / background colour histograms (RGB, `bins`^3 cells), learned online.
 
-The first frame of a session initialises both from the pixels along the correspondence lines at the
-prior pose (inside the outline: foreground, outside: background); every later frame blends in the
-pixels at the estimated pose with a learning rate (SRT3D: 0.2). A pixel's foreground posterior is
-h_f / (h_f + h_b), both histograms normalised (equal priors).
+A pair is filled from pixels along the correspondence lines (inside the outline: foreground,
+outside: background): the first `update` replaces, later ones blend in with a learning rate (SRT3D:
+0.2). The estimator keeps one pair per session, learned at its answers' poses, and builds one per
+frame from that frame's pixels, mixed with the session's (`mixed`). Pixels are handled as cells
+(`index`: one int a pixel). A pixel's foreground posterior is h_f / (h_f + h_b), both histograms
+normalised (equal priors).
 """
 
 from __future__ import annotations
