@@ -24,7 +24,7 @@ PARAMS = {"scales", "iterations_per_scale", "half_segments", "line_weight", "dam
           "damping_translation", "covariance_inflation", "default_prior_sigma_m", "default_prior_sigma_deg",
           "bins", "learning_rate", "max_sessions", "max_session_age_s", "views_subdivisions", "contour_points",
           "cache_dir", "min_confidence", "histogram_px", "refit_scales", "refits", "margin_factors", "session_weight",
-          "retry_below", "retry_margin_factors"}
+          "retry_below", "retry_margin_factors", "coarse_search"}
 
 
 class RegionEstimator(Estimator):
@@ -39,7 +39,8 @@ class RegionEstimator(Estimator):
                  views_subdivisions: int = 4, contour_points: int = 200, cache_dir: str | Path | None = None,
                  min_confidence: float = 0.3, histogram_px: int = 20, refit_scales: tuple[int, ...] = (2, 1),
                  refits: int = 1, margin_factors: tuple[float, float] = (0.5, 0.5), session_weight: float = 0.5,
-                 retry_below: float = 0.45, retry_margin_factors: tuple[float, float] | None = (1.0, 2.0)):
+                 retry_below: float = 0.45, retry_margin_factors: tuple[float, float] | None = (1.0, 2.0),
+                 coarse_search: bool = True):
         """`objects`: object id -> ObjectModel (estimators.objects)."""
         super().__init__(name, list(objects))
         self._objects = dict(objects)
@@ -58,6 +59,7 @@ class RegionEstimator(Estimator):
         self.retry_below = retry_below
         self.retry_margin_factors = tuple(retry_margin_factors) if retry_margin_factors else None
         self.session_weight = session_weight
+        self.coarse_search = coarse_search
         self._models: dict[str, ViewpointModel] = {}
         self._models_lock = threading.Lock()
         self.sessions: SessionStore[ColourHistograms] = SessionStore(
@@ -121,6 +123,34 @@ class RegionEstimator(Estimator):
             return 0.0
         return float(np.clip(pf[fg_in].mean() - pb[bg_in].mean(), 0.0, 1.0))
 
+    def _coarse_shift(self, frame: CellImage, hist: ColourHistograms, lines, prior_px: float, K: np.ndarray,
+                      t0: np.ndarray) -> np.ndarray:
+        """A translation (camera frame, m) moving the prior's silhouette, in the image plane, to where
+        the colours agree with it best within +-2.5 sigma_px: the sum of (2 p_fg - 1) over the shifted
+        silhouette, for every shift at once (a correlation)."""
+        import cv2
+
+        reach = int(np.clip(2.5 * prior_px, 2, 60))
+        poly = lines.centers - [frame.x0, frame.y0]
+        lo = np.floor(poly.min(axis=0)).astype(int)
+        size = np.ceil(poly.max(axis=0)).astype(int) - lo + 1
+        if np.any(size < 4):
+            return np.zeros(3)
+        template = np.zeros((size[1], size[0]), np.float32)
+        cv2.fillPoly(template, [np.round((poly - lo) * 16).astype(np.int32)], 1.0, cv2.LINE_8, shift=4)
+        score = (2 * hist.posterior(frame.cells) - 1).astype(np.float32)
+        # the window of shifts: the template's top-left corner from lo - reach to lo + reach
+        h, w = score.shape
+        x0, y0 = lo - reach
+        pad = ((max(0, -y0), max(0, y0 + size[1] + 2 * reach - h)), (max(0, -x0), max(0, x0 + size[0] + 2 * reach - w)))
+        padded = np.pad(score, pad)  # off the region: no evidence either way
+        ys, xs = y0 + pad[0][0], x0 + pad[1][0]
+        window = padded[ys:ys + size[1] + 2 * reach, xs:xs + size[0] + 2 * reach]
+        response = cv2.matchTemplate(window, template, cv2.TM_CCORR)
+        dy, dx = np.unravel_index(int(np.argmax(response)), response.shape)
+        shift_px = np.array([dx - reach, dy - reach], dtype=float)
+        return np.array([shift_px[0] * t0[2] / K[0, 0], shift_px[1] * t0[2] / K[1, 1], 0.0])
+
     def _fit(self, frame, shape, K, model, hist, R0, t0, information, prior_px, margin_factors):
         """(confidence, result, lines at the result): this frame's own histograms from the prior's
         outline, `margin_factors` x the prior's pixel uncertainty off it (inside, outside), a first fit,
@@ -132,8 +162,12 @@ class RegionEstimator(Estimator):
             return own.mixed(hist, self.session_weight) if hist.initialised else own
 
         margins = [float(np.clip(f * prior_px, 1.0, 3.0 * self.histogram_px)) for f in margin_factors]
-        work = frame_histograms(project_lines(model, R0, t0, K, shape), margins)
-        result = optimize(frame, K, model, work, R0, t0, information, self.optimizer, shape=shape)
+        prior_lines = project_lines(model, R0, t0, K, shape)
+        work = frame_histograms(prior_lines, margins)
+        start = (R0, t0)
+        if self.coarse_search:
+            start = (R0, t0 + self._coarse_shift(frame, work, prior_lines, prior_px, K, t0))
+        result = optimize(frame, K, model, work, R0, t0, information, self.optimizer, shape=shape, start=start)
         for _ in range(self.refits):
             lines = None if result is None else project_lines(model, result.R, result.t, K, shape)
             if lines is None:
