@@ -44,7 +44,7 @@ from estimators.pnp import PnpEstimator, covariance, pose_jacobian
 INPUT_SCALE = 2  # frame -> network input (area averaging)
 # The covariance (docs/estimators.md; the inflations fitted by `flextrack evaluate nees` on its tuning frames)
 KEYPOINT_FLOOR_PX = 0.3  # px added in quadrature to each voted keypoint's spread
-KEYPOINT_INFLATION = 1.52  # PnP's pose (refine = false) from the voted keypoints
+KEYPOINT_INFLATION = 1.70  # PnP's pose (refine = false) from the voted keypoints
 REFINE_FLOOR_PX = 0.1  # least RMS contour residual the refinement's covariance assumes
 REFINE_EDGE_REF_PX = 0.35  # a typical RMS contour residual: where the edge-quality scaling is 1
 REFINE_EDGE_POWER = 4.0  # the variance grows as s^(2 + p) with the RMS contour residual s
