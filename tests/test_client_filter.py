@@ -138,3 +138,16 @@ def test_replay_of_the_same_events_is_bit_identical():
     runs = [drive(m, TrackerOptions(), duration_s=3.0, fps=60.0, answer=noisy_answers(m, 0.3, seed=9),
                   answer_covariance=NOISY_COV) for _ in range(2)]
     assert all(np.array_equal(a, b) for a, b in zip(runs[0].poses, runs[1].poses) if a is not None)
+
+
+def test_imu_noise_is_raised_to_what_a_vibrating_imu_shows_and_never_lowered():
+    m = Motion()
+    quiet = drive(m, TrackerOptions(), duration_s=3.0, fps=30.0, **IMU_NOISE)
+    shaking = drive(m, TrackerOptions(), duration_s=3.0, fps=30.0, gyro_sigma=20 * IMU_NOISE["gyro_sigma"],
+                    accel_sigma=20 * IMU_NOISE["accel_sigma"])
+    gyro_density, accel_density = FilterOptions().gyroscope_noise_density, FilterOptions().accelerometer_noise_density
+    g, a = quiet.tracker.imu_noise_densities
+    assert g == pytest.approx(gyro_density, rel=0.3) and a == pytest.approx(accel_density, rel=0.3)
+    assert g >= gyro_density and a >= accel_density
+    g, a = shaking.tracker.imu_noise_densities
+    assert 15 * gyro_density < g < 25 * gyro_density and 15 * accel_density < a < 25 * accel_density

@@ -24,6 +24,12 @@ class FilterOptions:
     """m/s^3/sqrt(Hz)."""
     noise_inflation: float = 1.0
     """Multiplies the IMU densities above (> 1 when a yaml's lab figures understate the sensor in use)."""
+    adapt_imu_noise: bool = True
+    """Raise the white-noise densities to what the IMU shows in use (its sample-to-sample differences over
+    the last `noise_window_samples`), never lower them: a yaml's lab figures and a vibrating device
+    differ by 10-50x (EuRoC's drone)."""
+    noise_window_samples: int = 200
+    """The running estimate's memory, samples (1 s at 200 Hz)."""
 
     # --- Initial uncertainty (1 sigma, per axis) ---
     init_velocity_std: float = 0.3
@@ -89,6 +95,8 @@ class FilterOptions:
                      "noise_inflation"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"filter option {name} must be > 0")
+        if self.noise_window_samples < 1:
+            raise ValueError("filter option noise_window_samples must be >= 1")
         if self.max_rejections < 1:
             raise ValueError("filter option max_rejections must be >= 1")
 

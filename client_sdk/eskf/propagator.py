@@ -37,15 +37,43 @@ _Q_INDEX = np.array(_flat((k, k) for k in (0, 1, 2, 6, 7, 8, 9, 10, 11, 12, 13, 
 
 
 class CovariancePropagator:
-    """Phi P Phi^T + Q for one interval; the noise part precomputed from the options."""
+    """Phi P Phi^T + Q for one interval; the noise part from the options, raised by `observe` to what
+    the IMU shows in use when `FilterOptions.adapt_imu_noise` is on."""
 
     def __init__(self, options: FilterOptions) -> None:
         k = options.noise_inflation
-        self._q_density = np.array([(k * options.gyroscope_noise_density) ** 2] * 3
-                                   + [(k * options.accelerometer_noise_density) ** 2] * 3
-                                   + [(k * options.gyroscope_random_walk) ** 2] * 3
-                                   + [(k * options.accelerometer_random_walk) ** 2] * 3)
+        self._densities = (k * options.gyroscope_noise_density, k * options.accelerometer_noise_density)
+        self._walks = (k * options.gyroscope_random_walk, k * options.accelerometer_random_walk)
+        self._adapt = options.adapt_imu_noise
+        self._alpha = 1.0 / max(options.noise_window_samples, 1)
+        self._diff_var = [0.0, 0.0]  # running mean square of sample-to-sample differences, per sensor
         self._phi = _IDENTITY.copy()
+        self._set_q(*self._densities)
+
+    def _set_q(self, gyro_density: float, accel_density: float) -> None:
+        self._q_density = np.array([gyro_density ** 2] * 3 + [accel_density ** 2] * 3 + [self._walks[0] ** 2] * 3
+                                   + [self._walks[1] ** 2] * 3)
+
+    def observe(self, s0: tuple, s1: tuple) -> None:
+        """Take in one new IMU interval. White noise of density n at rate r makes consecutive samples differ
+        by 2 n^2 r in mean square per axis; a vibrating device (a drone's rotors, a phone on a table
+        that is being typed on) shows far more than its datasheet's n, and the filter must believe it."""
+        if not self._adapt:
+            return
+        dt = (s1[0] - s0[0]) * NS
+        if dt <= 0:
+            return
+        a = self._alpha
+        for k, off in ((0, 1), (1, 4)):
+            d2 = ((s1[off] - s0[off]) ** 2 + (s1[off + 1] - s0[off + 1]) ** 2 + (s1[off + 2] - s0[off + 2]) ** 2) / 3
+            self._diff_var[k] += a * (d2 * dt / 2 - self._diff_var[k])  # -> n^2
+        g, acc = (max(self._densities[k], self._diff_var[k] ** 0.5) for k in (0, 1))
+        self._set_q(g, acc)
+
+    @property
+    def densities(self) -> tuple[float, float]:
+        """The white-noise densities (gyro, accel) in use."""
+        return float(self._q_density[0] ** 0.5), float(self._q_density[3] ** 0.5)
 
     def transition(self, x: tuple, dt: float, w: tuple, a: tuple) -> np.ndarray:
         """Phi for an interval of dt seconds ending at nominal x, with bias-corrected rates w, a."""

@@ -100,6 +100,11 @@ class FilterTracker(TrackerBase):
         return self._anchor is not None
 
     @property
+    def imu_noise_densities(self) -> tuple[float, float]:
+        """The gyro and accelerometer white-noise densities the filter uses now (`adapt_imu_noise`)."""
+        return self._prop.densities
+
+    @property
     def time_offset_s(self) -> float:
         """The estimated camera-IMU time offset (t_imu = t_camera + offset)."""
         return self._td
@@ -131,6 +136,8 @@ class FilterTracker(TrackerBase):
         last = buf.last_t_ns
         s = imu_sample(t_ns, gyro, accel, last)
         t = s[0]
+        if buf.samples:
+            self._prop.observe(buf.samples[-1], s)
         new = None
         if self._anchor is not None:
             prev = buf.samples[-1] if buf.samples else s

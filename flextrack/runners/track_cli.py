@@ -90,8 +90,10 @@ def tracker_options(args) -> TrackerOptions:
     flags = replace(base, bscm=not args.no_bscm, pia=not args.no_pia, backend_after_init=not args.imu_only,
                     integrator=args.integrator or base.integrator)
     tracker_set, filter_set = overrides(args.set)
-    if "max_rejections" in filter_set:
-        filter_set["max_rejections"] = int(filter_set["max_rejections"])
+    defaults = FilterOptions()
+    for name, value in filter_set.items():  # integer options stay integers
+        if isinstance(getattr(defaults, name), int) and not isinstance(value, bool):
+            filter_set[name] = int(value)
     return replace(flags, filter=replace(flags.filter, **filter_set), **tracker_set)
 
 
