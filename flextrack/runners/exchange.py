@@ -62,3 +62,11 @@ def apply_answer(tracker, request_id: int, response: pb.EstimateResponse, record
         record.bad_covariances += 1
     tracker.on_backend_response(request_id, response.capture_time_ns, wire.pose_from_pb(response.pose), True,
                                 covariance)
+
+
+def finish(tracker, record: TrackRecord) -> TrackRecord:
+    """What the tracker learned that the record reports: the filter's camera-IMU time offset."""
+    offset = getattr(tracker, "time_offset_s", None)
+    if offset is not None:
+        record.time_offset_ms = offset * 1e3
+    return record

@@ -23,7 +23,7 @@ from client_sdk.network_model import NetworkOptions
 from client_sdk.slowdown import PIXEL2_FACTOR, Slowdown
 from client_sdk.transport import TrackClient, TransportOptions
 from flextrack.formats.sequence import Sequence
-from flextrack.runners.exchange import apply_answer, frame_request, tracker_for
+from flextrack.runners.exchange import apply_answer, finish, frame_request, tracker_for
 from flextrack.runners.payload import stand_in_jpeg
 from flextrack.runners.results import TrackRecord
 from flextrack.v1 import pose_estimation_pb2 as pb
@@ -131,4 +131,4 @@ def run_live(seq: Sequence, address: str, vertices_O: np.ndarray, tracker_option
                                   client.connected))
         if progress is not None:
             progress(Progress((t_last - t_first) * 1e-9, (t_last - t_first) * 1e-9, record, status, client.connected))
-    return record
+    return finish(tracker, record)

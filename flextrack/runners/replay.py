@@ -25,7 +25,7 @@ from client_sdk import TrackerOptions
 from client_sdk.network_model import NetworkOptions
 from client_sdk.slowdown import PIXEL2_FACTOR, FrontendCosts, Slowdown
 from flextrack.formats.sequence import Sequence
-from flextrack.runners.exchange import apply_answer, frame_request, tracker_for
+from flextrack.runners.exchange import apply_answer, finish, frame_request, tracker_for
 from flextrack.runners.payload import stand_in_jpeg
 from flextrack.runners.results import TrackRecord
 
@@ -88,4 +88,4 @@ def replay(seq: Sequence, backend, vertices_O: np.ndarray, tracker_options: Trac
         else:
             request, response = payload
             apply_answer(tracker, request.request_id, response, record)
-    return record
+    return finish(tracker, record)

@@ -72,6 +72,7 @@ class Summary:
     responses: int = 0
     failures: int = 0
     bad_covariances: int = 0  # answers whose covariance was refused (the tracker's default used)
+    time_offset_ms: float = math.nan  # the filter's estimate of the camera-IMU offset at the end (t_imu - t_camera)
 
 
 @dataclass
@@ -83,6 +84,7 @@ class TrackRecord:
     responses: int = 0
     failures: int = 0
     bad_covariances: int = 0
+    time_offset_ms: float = math.nan
 
     def __post_init__(self) -> None:
         self._points = metric_points(self.vertices_O)
@@ -147,7 +149,7 @@ class TrackRecord:
             nees_mean=mean(nees), nees_frames=len(nees), fine_frames=counts.get("FINE", 0),
             worst_fine_px=max(fine) if fine else math.nan, status_counts=counts,
             requests=self.requests, responses=self.responses, failures=self.failures,
-            bad_covariances=self.bad_covariances)
+            bad_covariances=self.bad_covariances, time_offset_ms=self.time_offset_ms)
 
     def write(self, out_dir: str | Path, name: str = "track") -> Path:
         """frames.csv, summary.json and TUM files (estimate and ground truth) under out_dir."""

@@ -127,6 +127,9 @@ def run(args) -> int:
     record.write(args.out, name)
     if not args.no_plots:
         session.write_plots(record, args.out, name)
-    print(format_table([(name, record.summarize())]))
+    summary = record.summarize()
+    print(format_table([(name, summary)]))
+    if summary.time_offset_ms == summary.time_offset_ms:  # the filter estimated it
+        print(f"camera-IMU time offset (t_imu - t_camera) estimated online: {summary.time_offset_ms:.1f} ms")
     print(f"wrote {args.out}/{name}_*")
     return 0
