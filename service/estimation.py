@@ -62,8 +62,8 @@ class EstimationService:
         decoded = time.perf_counter()
         out = estimator.estimate(EstimateInput(
             frame_id=request.frame_id, capture_time_ns=request.capture_time_ns, object_id=request.object_id,
-            sequence=request.sequence, camera=camera, image=image, keypoints=keypoints, prior_T_CO=prior_T_CO,
-            prior_covariance=prior_covariance))
+            sequence=request.sequence, session_id=request.session_id, camera=camera, image=image, keypoints=keypoints,
+            prior_T_CO=prior_T_CO, prior_covariance=prior_covariance))
         done = time.perf_counter()
         pose = wire.pose_to_pb(out.T_CO) if out.T_CO is not None else None
         covariance = wire.covariance_to_pb(out.covariance) if out.T_CO is not None else None
