@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from flextrack.provenance import provenance
+
 CHI2_6_MEDIAN = 5.348  # scipy.stats.chi2.median(6)
 CHI2_6_Q95 = 12.592  # scipy.stats.chi2.ppf(0.95, 6)
 
@@ -188,22 +190,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--model", type=Path, help="PVNet ONNX (default: the shipped model)")
 
 
-def _provenance() -> dict:
-    import datetime
-    import platform
-    import subprocess
-
-    def git(*cmd: str) -> str:
-        done = subprocess.run(["git", *cmd], cwd=Path(__file__).resolve().parent, capture_output=True, text=True,
-                              check=False)
-        return done.stdout.strip() if done.returncode == 0 else ""
-
-    return {"commit": git("rev-parse", "HEAD") or None,
-            "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
-            "host": platform.node(), "python": platform.python_version(),
-            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
-
-
 def _entry(name: str, tune: list[dict], held: list[dict], stored: float, max_px: float, **extra) -> dict:
     """Held-out summaries (all answers and those under max_px) and the factor the tuning set asks for:
     the raw formula's mean NEES / 6 there (the NEES with the stored factor times that factor)."""
@@ -221,8 +207,8 @@ def run(args) -> int:
 
     started = time.perf_counter()
     result = {"command": "flextrack evaluate nees " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else
-              "flextrack evaluate nees", "options": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
-              **_provenance(), "estimators": []}
+              "flextrack evaluate nees",
+              **provenance(**{k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}), "estimators": []}
     entries = result["estimators"]
     try:
         if "gt_oracle" in args.estimators:

@@ -19,11 +19,8 @@ for that object (pvnet's network knows only the default object) is reported as s
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import platform
-import socket
-import subprocess
 import sys
 import time
 import tomllib
@@ -36,8 +33,8 @@ import numpy as np
 from flextrack.formats import bop
 from flextrack.geometry import metrics, so3
 from flextrack.geometry.camera import PinholeCamera
+from flextrack.provenance import provenance
 
-REPO = Path(__file__).resolve().parents[2]  # for the git commit only
 DEFAULT_LEVELS = "10:5,20:10,none"
 
 
@@ -135,15 +132,6 @@ def build_for_object(config: Path, name: str, object_id: str, model_path: Path):
     parts = [f"its part '{v}' cannot: {errors[v]}" for v in entry.get("params", {}).values()
              if isinstance(v, str) and v in errors]
     return None, "; ".join(parts) if parts else errors[name]
-
-
-def git_state() -> dict:
-    def git(*args):
-        return subprocess.run(["git", *args], check=False, cwd=REPO, capture_output=True, text=True).stdout.strip()
-    try:
-        return {"commit": git("rev-parse", "HEAD"), "dirty": bool(git("status", "--porcelain", "--untracked-files=no"))}
-    except OSError:
-        return {"commit": None, "dirty": None}
 
 
 def evaluate(estimator, frames: list[Frame], levels: list[PriorLevel], draws: int, seed: int,
@@ -251,10 +239,9 @@ def run(args: argparse.Namespace) -> int:
     result = {
         "command": "flextrack evaluate prior " + " ".join(sys.argv[3:] if sys.argv[1:3] == ["evaluate", "prior"]
                                                           else sys.argv[1:]),
-        "options": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
+        **provenance(**{k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}),
         "seeds": {"seed": args.seed, "rng": "numpy default_rng([seed, sigma in um, sigma in mdeg, draw])"},
-        **git_state(), "host": socket.gethostname(), "platform": platform.platform(),
-        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "platform": platform.platform(),
         "frames": len(frames), "object_id": object_id,
     }
     estimator, error = build_for_object(args.config, args.estimator, object_id, model_path)
