@@ -29,6 +29,10 @@ def test_table2_on_short_sequences_writes_the_agreed_csv(tmp_path, capsys):
                       and r["backend"] == "noisy")["paper_proj_px"]) == 2.01
     assert (out / "table2.png").stat().st_size > 0
     assert "Table 2 rerun" in (out / "table2.md").read_text()
+    record = json.loads((out / "table2.json").read_text())  # provenance of the run (flextrack.provenance)
+    assert record["provenance"]["options"]["seed_list"] == [0] and record["provenance"]["options"]["duration"] == 3
+    assert {"commit", "dirty", "host", "date"} <= set(record["provenance"])
+    assert {"table2.csv", "table2_paper.csv", "table2.md"} <= set(record["files"])
     paper_rows = _csv(out / "table2_paper.csv")  # the paper-faithful tracker, same columns
     assert list(paper_rows[0]) == list(rows[0]) and len(paper_rows) == len(rows)
     tum = out / "trajectories" / "filter_circular_medium_30fps_gt_estimate.tum"

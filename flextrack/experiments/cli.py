@@ -1,17 +1,20 @@
 """`flextrack experiment table2|ablation|timing|euroc|filter --out DIR`: the paper's experiments, rerun,
 and the error-state filter's own checks.
 
-Each writes a Markdown report, CSV tables, PNG plots and TUM trajectories under DIR.
+Each writes a Markdown report, CSV tables, PNG plots and TUM trajectories under DIR, and `NAME.json`
+with the run's provenance (flextrack.provenance: options, seeds, commit, dirty, host, date).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
 
 from flextrack.experiments import paper
+from flextrack.provenance import provenance
 
 EXPERIMENTS = ("table2", "ablation", "timing", "euroc", "filter")
 
@@ -61,6 +64,14 @@ def run(args) -> int:
         print(f"flextrack experiment {args.experiment}: {exc}", file=sys.stderr)
         return 2
     stem = args.experiment if args.experiment != "table2" or args.backend == "oracles" else f"table2_{args.backend}"
+    if args.experiment != "filter":  # filter writes filter.json itself, rows included
+        options = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
+        provenance_file = args.out / f"{stem}.json"
+        provenance_file.write_text(json.dumps({"provenance": provenance(command="flextrack experiment " + args.experiment,
+                                                                        seed_list=list(range(args.seeds)) if args.experiment == "table2"
+                                                                        else [args.seed], **options),
+                                               "files": sorted(p.name for p in args.out.glob(f"{stem}*.*")
+                                                               if p != provenance_file)}, indent=1) + "\n")
     report = args.out / f"{stem}.md"
     print(report.read_text())
     print(f"wrote {report} and its CSV/PNG files in {time.perf_counter() - started:.0f} s")
