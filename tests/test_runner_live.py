@@ -47,6 +47,8 @@ def test_track_cli_writes_results_and_rejects_bad_input(short_seq, tmp_path, cap
     assert main(["track", str(short_seq.root), "--out", str(out), "--backend", "noisy", "--no-plots"]) == 0
     summary = json.loads((out / f"{short_seq.name}_noisy_summary.json").read_text())
     assert summary["frames"] == len(short_seq.frame_ids) and summary["proj_px"] < 10
+    prov = summary["provenance"]  # flextrack.provenance: the options, seed included, commit, dirty, host, date
+    assert prov["options"]["backend"] == "noisy" and "seed" in prov["options"] and {"commit", "dirty", "host", "date"} <= set(prov)
     assert (out / f"{short_seq.name}_noisy_estimate.tum").stat().st_size > 0
     assert "| run |" in capsys.readouterr().out
     assert main(["track", str(tmp_path / "missing"), "--out", str(out)]) == 2

@@ -151,8 +151,9 @@ class TrackRecord:
             requests=self.requests, responses=self.responses, failures=self.failures,
             bad_covariances=self.bad_covariances, time_offset_ms=self.time_offset_ms)
 
-    def write(self, out_dir: str | Path, name: str = "track") -> Path:
-        """frames.csv, summary.json and TUM files (estimate and ground truth) under out_dir."""
+    def write(self, out_dir: str | Path, name: str = "track", provenance: dict | None = None) -> Path:
+        """frames.csv, summary.json and TUM files (estimate and ground truth) under out_dir; `provenance`
+        (flextrack.provenance.provenance(...)) goes into summary.json under that key."""
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         scored = self.scored()
@@ -166,7 +167,8 @@ class TrackRecord:
             t = np.array([r.t_ns for r in scored], dtype=np.int64)
             tum.write_tum(out / f"{name}_estimate.tum", t, np.stack([r.T_CO for r in scored]))
             tum.write_tum(out / f"{name}_groundtruth.tum", t, np.stack([r.T_gt for r in scored]))
-        (out / f"{name}_summary.json").write_text(json.dumps(asdict(self.summarize()), indent=2) + "\n")
+        summary = asdict(self.summarize()) | ({"provenance": provenance} if provenance is not None else {})
+        (out / f"{name}_summary.json").write_text(json.dumps(summary, indent=2) + "\n")
         return out
 
 
