@@ -70,9 +70,10 @@ class FilterOptions:
 
     # --- What a frame shows ---
     ease_s: float = 0.03
-    """Time constant (s) over which a correction's jump of the shown pose is eased in (0: at once). The
-    filter's state takes each answer at once; only the pose a frame reports glides, trading a little
-    accuracy for less visible shake."""
+    """Time constant (s) over which a correction's jump of the shown pose is eased in (0: at once), and
+    at least `ease_min_frames` frame intervals. The filter's state takes each answer at once; only the
+    pose a frame reports glides, trading a little accuracy for less visible shake."""
+    ease_min_frames: float = 2.0
 
     # --- Status from the covariance ---
     max_sigma_px: float = 6.0

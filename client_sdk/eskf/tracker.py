@@ -92,6 +92,7 @@ class FilterTracker(TrackerBase):
         self._corrected = False
         self._rejected = 0  # answers rejected in a row
         self._ease = (np.zeros(6), 0)  # (pose offset still to ease in, camera time it was set)
+        self._frame_interval_s = 0.0
         self.last_chi2: float | None = None
 
     # ------------------------------------------------------------------ properties
@@ -257,6 +258,8 @@ class FilterTracker(TrackerBase):
         fps = o.fps
         if fps is None and self._last_frame_t is not None:
             fps = 1e9 / (t - self._last_frame_t)
+        if self._last_frame_t is not None:
+            self._frame_interval_s = (t - self._last_frame_t) * 1e-9
         t_last, self._last_frame_t = self._last_frame_t, t
         if self._anchor is None:
             return self._initializing_frame(t)
@@ -284,8 +287,11 @@ class FilterTracker(TrackerBase):
 
     def _ease_left(self, t: int) -> np.ndarray:
         offset, t_set = self._ease
-        tau = self.options.filter.ease_s
-        return offset * np.exp(-(t - t_set) * 1e-9 / tau) if tau > 0 else offset * 0.0
+        fo = self.options.filter
+        if fo.ease_s <= 0:
+            return offset * 0.0
+        tau = max(fo.ease_s, fo.ease_min_frames * self._frame_interval_s)
+        return offset * np.exp(-(t - t_set) * 1e-9 / tau)
 
     def _eased(self, T_CO: np.ndarray, t: int) -> np.ndarray:
         """The pose shown at frame time t: the filter's, minus what is left of its recent corrections
