@@ -7,6 +7,7 @@ can always be traced to the run that made it.
 from __future__ import annotations
 
 import datetime
+import json
 import platform
 import subprocess
 from pathlib import Path
@@ -22,10 +23,20 @@ def _git(*args: str) -> str:
     return done.stdout.strip() if done.returncode == 0 else ""
 
 
+_SECRET = ("metadata", "credentials", "token", "password")  # never written: may hold a bearer token
+
+
 def provenance(**options) -> dict:
-    """The record: `options` as given (seeds included), commit, dirty, host, python and the UTC date."""
+    """The record: `options` as given (seeds included; made JSON-safe: paths and other objects as text,
+    credentials and metadata left out), commit, dirty, host, python and the UTC date."""
+    options = json.loads(json.dumps({k: v for k, v in options.items() if k not in _SECRET}, default=str))
     commit = _git("rev-parse", "HEAD") or None
     return {"options": options, "commit": commit,
             "dirty": bool(_git("status", "--porcelain", "--untracked-files=no")) if commit else None,
             "host": platform.node(), "python": platform.python_version(),
             "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
+
+
+def of_args(args, **extra) -> dict:
+    """The record of a command: its parsed arguments (an argparse Namespace) and `extra` as the options."""
+    return provenance(**vars(args), **extra)

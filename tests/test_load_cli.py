@@ -33,6 +33,9 @@ def test_loadtest_cli_reports_and_writes_csv_and_plot(oracle, tmp_path, capsys):
     assert "p50/p95/p99" in printed and "outcomes OK=" in printed
     summary = json.loads((tmp_path / "load_summary.json").read_text())
     assert summary["outcomes"].keys() == {"OK"} and summary["answered"] > 30
+    prov = summary["provenance"]  # the load spec (seed included), commit, dirty, host, date; never the credentials
+    assert prov["options"]["clients"] == 3 and "seed" in prov["options"] and "credentials" not in prov["options"]
+    assert {"commit", "dirty", "host", "date"} <= set(prov)
     with open(tmp_path / "load_requests.csv") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == summary["answered"] and {r["client"] for r in rows} == {"0", "1", "2"}

@@ -22,6 +22,7 @@ from pathlib import Path
 
 from flextrack import assets
 from flextrack.loadtest import report, runner, servers, workload
+from flextrack.provenance import of_args
 
 DEFAULT_MODEL = assets.pvnet_model_path()
 
@@ -99,5 +100,6 @@ def run(args: argparse.Namespace) -> int:
           f"{'untrained' if args.untrained else 'trained'} model)")
     (args.out / "batching.json").write_text(json.dumps(
         {"date_utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "model": str(model) if not args.untrained
-         else "untrained (seeded)", "clients": args.clients, "rows": rows, "gain": gain}, indent=2))
+         else "untrained (seeded)", "clients": args.clients, "rows": rows, "gain": gain,
+         "provenance": of_args(args, command="flextrack bench batching")}, indent=2))
     return 0

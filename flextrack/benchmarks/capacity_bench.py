@@ -23,6 +23,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from flextrack.loadtest import front_proxy, ramp, report, runner, servers, workload
+from flextrack.provenance import of_args
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -210,6 +211,7 @@ def run(args: argparse.Namespace) -> int:
             results["backends"][n]["overload"] = dict(overload, max_streams=max_streams, front=args.front)
     if not args.capacity:
         _print_against_echo(results["backends"], args.p99_bound_ms)
+    results["provenance"] = of_args(args, command="flextrack bench capacity")
     (out / "capacity.json").write_text(json.dumps(results, indent=2))
     print(f"wrote {out}/capacity.json" + (" (capacity given: no ramps)" if args.capacity else " and a ramp per backend"))
     return 0

@@ -21,6 +21,7 @@ import urllib.request
 from pathlib import Path
 
 from flextrack.loadtest import report, runner, servers, workload
+from flextrack.provenance import of_args
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -86,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
     for row in rows:
         row["speedup_vs_first"] = row["ok_fps"] / base
     result = {"date_utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "clients": args.clients,
-              "fps": args.fps, "payload_kb": args.payload_kb, "rows": rows}
+              "fps": args.fps, "payload_kb": args.payload_kb, "rows": rows,
+              "provenance": of_args(args, command="flextrack bench replicas")}
     (args.out / "replicas.json").write_text(json.dumps(result, indent=2))
     print("throughput vs replicas: " + ", ".join(f"{r['replicas']}: x{r['speedup_vs_first']:.2f}" for r in rows))
     return 0

@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from flextrack.experiments import paper
-from flextrack.provenance import provenance
+from flextrack.provenance import of_args
 
 EXPERIMENTS = ("table2", "ablation", "timing", "euroc", "filter")
 
@@ -65,11 +65,10 @@ def run(args) -> int:
         return 2
     stem = args.experiment if args.experiment != "table2" or args.backend == "oracles" else f"table2_{args.backend}"
     if args.experiment != "filter":  # filter writes filter.json itself, rows included
-        options = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
         provenance_file = args.out / f"{stem}.json"
-        provenance_file.write_text(json.dumps({"provenance": provenance(command="flextrack experiment " + args.experiment,
-                                                                        seed_list=list(range(args.seeds)) if args.experiment == "table2"
-                                                                        else [args.seed], **options),
+        seed_list = list(range(args.seeds)) if args.experiment == "table2" else [args.seed]
+        provenance_file.write_text(json.dumps({"provenance": of_args(args, command="flextrack experiment "
+                                                                     + args.experiment, seed_list=seed_list),
                                                "files": sorted(p.name for p in args.out.glob(f"{stem}*.*")
                                                                if p != provenance_file)}, indent=1) + "\n")
     report = args.out / f"{stem}.md"

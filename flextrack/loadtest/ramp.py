@@ -16,6 +16,7 @@ from pathlib import Path
 from flextrack.loadtest.report import summarize
 from flextrack.loadtest.runner import LoadSpec, run
 from flextrack.loadtest.workload import Workload
+from flextrack.provenance import provenance
 
 
 @dataclass(frozen=True)
@@ -67,7 +68,9 @@ def write_ramp(steps: list[RampStep], best: int, p99_bound_ms: float, out: str |
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "ramp.json").write_text(json.dumps({"best_clients": best, "p99_bound_ms": p99_bound_ms,
-                                               "steps": [s.summary | {"passed": s.passed} for s in steps]}, indent=2))
+                                               "steps": [s.summary | {"passed": s.passed} for s in steps],
+                                               "provenance": provenance(p99_bound_ms=p99_bound_ms,
+                                                                        clients=[s.clients for s in steps])}, indent=2))
     with open(out / "ramp.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["clients", "ok_fps", "p50_ms", "p95_ms", "p99_ms", "error_rate", "passed"])

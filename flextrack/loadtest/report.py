@@ -5,11 +5,13 @@ from __future__ import annotations
 import csv
 import json
 from collections import Counter
+from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
 
 from flextrack.loadtest.runner import LoadResult
+from flextrack.provenance import provenance
 
 
 def percentiles(latencies_ms: list[float]) -> dict[str, float | None]:
@@ -107,6 +109,8 @@ def write_all(result: LoadResult, out: str | Path, stem: str = "load") -> dict:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     summary = summarize(result)
+    spec = result.spec
+    summary["provenance"] = provenance(**{f.name: getattr(spec, f.name) for f in fields(spec)})
     (out / f"{stem}_summary.json").write_text(json.dumps(summary, indent=2))
     write_csv(result, out / f"{stem}_requests.csv")
     plot_latency(result, out / f"{stem}_latency.png")

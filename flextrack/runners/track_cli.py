@@ -17,7 +17,7 @@ from client_sdk.network_model import NetworkOptions
 from client_sdk.options import PRESETS, preset
 from client_sdk.slowdown import PIXEL2_FACTOR
 from flextrack.formats import sequence as sequence_io
-from flextrack.provenance import provenance
+from flextrack.provenance import of_args
 from flextrack.runners import session
 from flextrack.runners.backends import ORACLE_BACKENDS as ORACLES
 from flextrack.runners.results import format_table
@@ -125,8 +125,7 @@ def run(args) -> int:
               f"(is '{args.backend}' an estimator of that server, and does it know sequence '{seq.name}'?)",
               file=sys.stderr)
         return 1
-    record.write(args.out, name, provenance=provenance(command="flextrack track", **{
-        k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}))
+    record.write(args.out, name, provenance=of_args(args, command="flextrack track"))
     if not args.no_plots:
         session.write_plots(record, args.out, name)
     summary = record.summarize()
