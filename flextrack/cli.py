@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("flextrack.training.cli", "train the PVNet-style network on rendered views and export it to ONNX"),
     "bench": ("flextrack.benchmarks.cli", "benchmarks that print figures: service throughput, rendering, estimators"),
     "loadtest": ("flextrack.loadtest.cli", "load-test a running service with many Track streams"),
+    "report": ("flextrack.report", "regenerate the README's and docs' result sections from docs/results/"),
     "evaluate": ("flextrack.evaluation.cli", "evaluate estimators: prior (score with priors around the ground truth), nees (covariance calibration)"),
 }
 

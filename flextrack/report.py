@@ -1,0 +1,186 @@
+"""`flextrack report`: the README's and docs' result sections, generated from the stored results.
+
+A stored result is a folder `docs/results/NAME/` with the run's small files (CSV/JSON) and its
+provenance (`NAME.json`: {"provenance": flextrack.provenance.provenance(...), ...}). A Markdown file
+shows it between two markers:
+
+    <!-- results:NAME -->
+    ...generated, never edited by hand...
+    <!-- /results:NAME -->
+
+`flextrack report` rewrites every such section of README.md and docs/*.md from the folders;
+`flextrack report --check` only says which sections differ (exit 1), and a test runs the same check,
+so a table and the run behind it cannot drift apart.
+
+Adding a result: copy the run's files into `docs/results/NAME/` (with its provenance JSON), add a
+function `render(folder: Path) -> str` below, registered with `@section("NAME")`, put the two
+markers where the table belongs, run `flextrack report`, commit the files, the code and the page.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import re
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+RESULTS_DIR = Path("docs") / "results"
+PAGES = ("README.md", "docs/*.md")
+_MARKER = re.compile(r"(<!-- results:(?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /results:(?P=name) -->)", re.DOTALL)
+
+RENDERERS: dict[str, Callable[[Path], str]] = {}
+
+
+def section(name: str) -> Callable:
+    """Register `render(folder) -> markdown` for the markers `<!-- results:NAME -->`."""
+    def register(fn: Callable[[Path], str]) -> Callable[[Path], str]:
+        RENDERERS[name] = fn
+        return fn
+    return register
+
+
+# --- helpers a renderer uses -------------------------------------------------------------------
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def read_provenance(path: Path) -> dict:
+    """The provenance record of a stored result's JSON (the whole file when it has no "provenance" key)."""
+    data = json.loads(path.read_text())
+    return data.get("provenance", data)
+
+
+def provenance_line(prov: dict, command: str | None = None) -> str:
+    """One sentence: the command, the date, the commit (dirty or not) and the host."""
+    commit = (prov.get("commit") or "unknown")[:10]
+    dirty = prov.get("dirty")
+    state = " (uncommitted changes in the tree)" if dirty else ("" if dirty is False else " (tree state unknown)")
+    cmd = command or prov.get("options", {}).get("command")
+    parts = [f"`{cmd}`" if cmd else None, f"run {prov.get('date', '?')}", f"commit {commit}{state}",
+             f"host {prov.get('host', '?')}"]
+    return "Source: " + ", ".join(p for p in parts if p) + "."
+
+
+def _range(values) -> str:
+    lo, hi = float(np.min(values)), float(np.max(values))
+    return f"{lo:.2f}" if f"{lo:.2f}" == f"{hi:.2f}" else f"{lo:.2f}-{hi:.2f}"
+
+
+# --- the sections --------------------------------------------------------------------------------
+
+
+@section("table2")
+def render_table2(folder: Path) -> str:
+    """Table 2: the paper / the paper-faithful tracker / the filter per cell (2D px), the filter's jitter."""
+    from flextrack.experiments import paper
+
+    variants = {"filter": read_csv(folder / "table2.csv"), "paper": read_csv(folder / "table2_paper.csv")}
+    prov = read_provenance(folder / "table2.json")
+    cells: dict[str, dict[tuple, np.ndarray]] = {}
+    for variant, rows in variants.items():
+        acc: dict[tuple, list] = {}
+        for r in rows:
+            key = (r["motion"], r["level"], int(float(r["fps"])), r["backend"])
+            acc.setdefault(key, []).append([float(r["proj_px"]), float(r["jitter_px"])])
+        cells[variant] = {k: np.array(v) for k, v in acc.items()}
+    seeds = sorted({int(r["seed"]) for r in variants["filter"]})
+    programs = [(m, lv) for m in paper.MOTIONS for lv in paper.LEVELS]
+    fps_list = sorted({k[2] for k in cells["filter"]})
+    short = {"translational": "trans.", "circular": "circ."}
+    lines = ["| backend | FPS | " + " | ".join(f"{short[m]} {lv}" for m, lv in programs) + " |",
+             "|---|---|" + "---|" * len(programs)]
+    ranges: dict[tuple[str, str], list[float]] = {}
+    for backend in paper.BACKENDS:
+        for fps in fps_list:
+            row = ["GT" if backend == "gt" else "Noisy", str(fps)]
+            for m, lv in programs:
+                key = (m, lv, fps, backend)
+                if key not in cells["filter"] or key not in cells["paper"]:
+                    row.append("")
+                    continue
+                f, p = cells["filter"][key], cells["paper"][key]
+                spread = f" ±{f[:, 0].std():.2f}" if len(f) > 1 else ""
+                row.append(f"{paper.TABLE2[key][2]:.2f} / {p[:, 0].mean():.2f} / **{f[:, 0].mean():.2f}**{spread} "
+                           f"({f[:, 1].mean():.2f})")
+                for name, v in (("paper", paper.TABLE2[key][2]), ("faithful", p[:, 0].mean()),
+                                ("filter", f[:, 0].mean()), ("jitter", f[:, 1].mean())):
+                    ranges.setdefault((backend, name), []).append(float(v))
+            lines.append("| " + " | ".join(row) + " |")
+    seed_text = f"seed {seeds[0]}" if len(seeds) == 1 else f"seeds {seeds[0]}-{seeds[-1]}, ± the filter's std over seeds"
+    summary = "; ".join(
+        f"{'GT' if b == 'gt' else 'Noisy'} backend: the paper {_range(ranges[(b, 'paper')])} px, paper-faithful "
+        f"{_range(ranges[(b, 'faithful')])} px, the filter {_range(ranges[(b, 'filter')])} px "
+        f"(jitter {_range(ranges[(b, 'jitter')])} px)" for b in paper.BACKENDS if (b, "filter") in ranges)
+    return "\n".join([
+        (f"Mean 2D projection error in px ({seed_text}), per cell: the paper / our paper-faithful tracker / "
+         "**the filter** (the error-state Kalman filter, the default tracker), and in parentheses the filter's "
+         "jitter (RMS frame-to-frame change of the 2D error, px). Noisy backend: 3 mm and 0.3 deg per axis."),
+        "", *lines, "", f"Ranges over the cells: {summary}.", "",
+        provenance_line(prov, "flextrack experiment table2 --out out/table2") + " Files: "
+        f"`{RESULTS_DIR.as_posix()}/{folder.name}/` (per-cell position, orientation, NEES and worst-frame columns "
+        "too)."])
+
+
+# --- the command -----------------------------------------------------------------------------------
+
+
+def render(name: str, root: Path) -> str:
+    if name not in RENDERERS:
+        raise KeyError(f"no renderer for results:{name} (known: {', '.join(sorted(RENDERERS))})")
+    folder = root / RESULTS_DIR / name
+    if not folder.is_dir():
+        raise FileNotFoundError(f"results:{name}: {folder} does not exist")
+    return RENDERERS[name](folder).rstrip("\n") + "\n"
+
+
+def regenerate(text: str, root: Path) -> str:
+    """`text` with every marked section replaced by what its stored results give."""
+    return _MARKER.sub(lambda m: m.group(1) + render(m.group("name"), root) + m.group(4), text)
+
+
+def pages(root: Path) -> list[Path]:
+    return sorted({p for pattern in PAGES for p in root.glob(pattern) if p.is_file()})
+
+
+def update(root: Path, check: bool = False) -> list[Path]:
+    """The pages whose sections differ from their results; rewritten unless `check`."""
+    stale = []
+    for page in pages(root):
+        text = page.read_text()
+        new = regenerate(text, root)
+        if new != text:
+            stale.append(page)
+            if not check:
+                page.write_text(new)
+    return stale
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--root", type=Path, default=Path("."), help="the repository (README.md, docs/, docs/results/)")
+    parser.add_argument("--check", action="store_true", help="change nothing; exit 1 when a section differs")
+    parser.add_argument("--list", action="store_true", help="list the known result sections and exit")
+
+
+def run(args) -> int:
+    if args.list:
+        for name in sorted(RENDERERS):
+            print(f"{name}: {(RENDERERS[name].__doc__ or '').strip()}")
+        return 0
+    try:
+        stale = update(args.root, check=args.check)
+    except (KeyError, FileNotFoundError, ValueError) as exc:
+        print(f"flextrack report: {exc}", file=sys.stderr)
+        return 2
+    for page in stale:
+        print(f"{'differs from its results' if args.check else 'regenerated'}: {page}")
+    if not stale:
+        print("every results section matches its stored results")
+    return 1 if args.check and stale else 0
