@@ -81,6 +81,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"flextrack serve: refusing to listen on {args.host} without TLS or tokens; give --tls-cert/--tls-key or "
               f"--token-file, or --insecure-public to expose it unauthenticated", file=sys.stderr)
         return 2
+    if not 0 <= args.port <= 65535:
+        print(f"flextrack serve: --port must be 0..65535 (0: any free port), got {args.port}", file=sys.stderr)
+        return 2
     if not args.drain_s >= 0:
         print(f"flextrack serve: --drain-s must be >= 0, got {args.drain_s}", file=sys.stderr)
         return 2

@@ -66,11 +66,23 @@ def write_frame_times(path: str | Path, ids: np.ndarray, times_ns: np.ndarray) -
 
 
 def load(root: str | Path) -> Sequence:
-    """Read a sequence folder; raises FileNotFoundError naming the missing part."""
+    """Read a sequence folder; raises FileNotFoundError naming the missing part, ValueError for a rig.yaml that
+    is not a mapping of YAML."""
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"sequence folder {root} does not exist")
-    rig = yaml.safe_load((root / "rig.yaml").read_text())
+    if not (root / "rig.yaml").is_file():
+        raise FileNotFoundError(f"{root}: not a sequence folder (no rig.yaml); make one with `flextrack simulate` "
+                                "or `flextrack convert-euroc`")
+    try:
+        rig = yaml.safe_load((root / "rig.yaml").read_text())
+    except yaml.YAMLError as exc:
+        where = getattr(exc, "problem_mark", None)
+        raise ValueError(f"{root / 'rig.yaml'}: not valid YAML"
+                         + (f" (line {where.line + 1})" if where is not None else "")) from None
+    if not isinstance(rig, dict):
+        raise ValueError(f"{root / 'rig.yaml'}: expected a mapping of keys (T_BC, T_WO, width, ...), "  # noqa: TRY004 (a file, not an argument)
+                         f"got {type(rig).__name__}")
     noise, _ = kalibr.read_imu_sensor(root / "imu0" / "sensor.yaml")
     ids, times = read_frame_times(root / "frame_times.csv")
     bop_obj_id = int(rig["bop_obj_id"])

@@ -1,5 +1,6 @@
 """`flextrack loadtest`: many simulated devices streaming to a running service; figures, CSV and plots.
 
+    flextrack loadtest --target 127.0.0.1:50051 --clients 40 --fps 30 --duration 10   # default server: pnp
     flextrack loadtest --target 127.0.0.1:50051 --clients 20 --fps 30 --payload-kb 100 \\
         --estimator gt_oracle --sequence SEQ_DIR --duration 10 --out out/load
     flextrack loadtest --target 127.0.0.1:50051,127.0.0.1:50052 --ramp --p99-bound-ms 50 ...
@@ -21,10 +22,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fps", type=float, default=30.0, help="frame rate of each device")
     parser.add_argument("--payload-kb", type=float, default=100.0,
                         help="request size in KiB (image + client state; the paper's 90 kB JPEG + 10 kB state)")
-    parser.add_argument("--estimator", default="", help="estimator name in the server's registry ('' = its default)")
+    parser.add_argument("--estimator", default=None,
+                        help="estimator name in the server's registry ('' = its default); default: pnp without "
+                             "--sequence (the synthetic frames carry the default object's keypoints, which the "
+                             "default server config's pnp answers), the server's default with --sequence")
     parser.add_argument("--sequence", type=Path,
-                        help="sequence folder whose frame times, intrinsics and rgb/ frames the devices send "
-                             "(an oracle needs the one it has loaded); default: synthetic frames")
+                        help="sequence folder whose frame times, intrinsics and rgb/ frames the devices send (an "
+                             "oracle answers only a sequence the server has loaded: list its folder in the server "
+                             "config's sequence_roots); default: synthetic frames with keypoints")
     parser.add_argument("--duration", type=float, default=10.0, help="seconds measured (after the warm-up)")
     parser.add_argument("--warmup", type=float, default=1.0, help="seconds before measuring starts")
     parser.add_argument("--rpc", choices=["track", "estimate"], default="track",
@@ -70,24 +75,79 @@ def _workload(args: argparse.Namespace):
     from flextrack.loadtest import workload
 
     if args.sequence:
-        return workload.from_sequence(args.sequence, args.payload_kb, args.estimator, seed=args.seed)
-    return workload.synthetic(args.payload_kb, args.estimator, args.fps, seed=args.seed)
+        return workload.from_sequence(args.sequence, args.payload_kb, args.estimator or "", seed=args.seed)
+    return workload.keypoint_frames(args.payload_kb, "pnp" if args.estimator is None else args.estimator, args.fps,
+                                    seed=args.seed)
+
+
+def check_reachable(spec, timeout_s: float = 3.0) -> None:
+    """ConnectionError when no server answers at the spec's target within `timeout_s`."""
+    import grpc
+
+    from flextrack.loadtest.runner import channel_options, grpc_target
+    from flextrack.runners.backends import wait_ready
+
+    target = grpc_target(spec.targets)
+    options = channel_options(spec.server_name)
+    channel = (grpc.secure_channel(target, spec.credentials, options) if spec.credentials
+               else grpc.insecure_channel(target, options))
+    try:
+        wait_ready(channel, ",".join(spec.targets), timeout_s)
+    finally:
+        channel.close()
+
+
+def failure(summary: dict, args: argparse.Namespace) -> str | None:
+    """One line saying why the run failed (nothing answered, or most answers were errors), or None."""
+    outcomes = {k: v for k, v in summary["outcomes"].items() if k != "OK"}
+    if not summary["answered"]:
+        return f"nothing answered at {args.target} (sent {summary['sent']} requests)"
+    if summary["error_rate"] <= 0.5:
+        return None
+    worst = max(outcomes, key=outcomes.get)
+    hint = {"status:INVALID_INPUT": "does the server have estimator '{e}' and, for an oracle, the --sequence in "
+                                    "its config's sequence_roots?",
+            "status:OBJECT_NOT_FOUND": "estimator '{e}' found no object in these frames; use frames it can answer "
+                                       "(--sequence) or the default (pnp on synthetic keypoints)",
+            "grpc:UNAVAILABLE": "is the server still up?",
+            "grpc:RESOURCE_EXHAUSTED": "the server refused the streams: fewer --clients or a larger --max-streams"}
+    estimator = args.estimator if args.estimator is not None else ("pnp" if not args.sequence else "(default)")
+    return (f"{summary['error_rate']:.0%} of {summary['answered']} answers were errors "
+            f"({', '.join(f'{k}={v}' for k, v in sorted(outcomes.items()))}); "
+            + hint.get(worst, "see load_requests.csv").format(e=estimator))
 
 
 def run(args: argparse.Namespace) -> int:
     from flextrack.loadtest import ramp, report, runner
+    from flextrack.runners import cli_checks
 
     try:
+        for target in args.target.split(","):
+            problem = cli_checks.address_problem(target, "--target")
+            if problem:
+                raise ValueError(problem)
         spec, work = _spec(args), _workload(args)
+        problem = cli_checks.out_folder_problem(args.out)
+        if problem:
+            raise ValueError(problem)
     except (ValueError, FileNotFoundError, OSError) as exc:
         print(f"flextrack loadtest: {exc}", file=sys.stderr)
         return 2
+    try:
+        check_reachable(spec)
+    except ConnectionError as exc:
+        print(f"flextrack loadtest: {exc}", file=sys.stderr)
+        return 1
     args.out.mkdir(parents=True, exist_ok=True)
     if not args.ramp:
         summary = report.write_all(runner.run(spec, work), args.out)
         print(report.format_summary(summary))
         print(f"wrote {args.out}/load_summary.json, load_requests.csv, load_latency.png")
-        return 0 if summary["answered"] else 1
+        reason = failure(summary, args)
+        if reason:
+            print(f"flextrack loadtest: {reason}", file=sys.stderr)
+            return 1
+        return 0
 
     def show(step: ramp.RampStep) -> None:
         p99 = step.summary["latency_all"]["p99_ms"]

@@ -113,3 +113,35 @@ def from_images(images: list[np.ndarray], camera, payload_kb: float, estimator: 
         _pad(req, int(payload_kb * 1024), rng)
         templates.append(FrameTemplate(req.capture_time_ns, req.SerializeToString()))
     return Workload(templates)
+
+
+def keypoint_frames(payload_kb: float, estimator: str = "pnp", fps: float = 30.0, frames: int = 30,
+                    seed: int = 0) -> Workload:
+    """Synthetic frames that a `pnp` estimator answers: the project's default object (the default server
+    config's `objects.default`) turning slowly 0.6 m in front of a LineMOD camera, its registered 3D keypoints
+    projected into each frame, and a random JPEG as the image. `flextrack loadtest` sends these by default, so
+    that `flextrack serve` with its default config answers them OK."""
+    from estimators.objects import load_object
+    from flextrack.assets import default_object_model
+    from flextrack.geometry import se3, so3
+    from flextrack.geometry.camera import PinholeCamera
+
+    keypoints_O = load_object("default", default_object_model()).keypoints
+    camera = PinholeCamera.linemod()
+    intrinsics = pb.Intrinsics(fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy, width=camera.width,
+                               height=camera.height)
+    rng = np.random.default_rng(seed)
+    image = _jpeg(rng.integers(0, 256, (camera.height // 8, camera.width // 8, 3), dtype=np.uint8)
+                  .repeat(8, 0).repeat(8, 1))
+    templates = []
+    for k in range(frames):
+        T_CO = se3.make(so3.exp(np.array([0.3, 2 * np.pi * k / frames, 0.1])), np.array([0.0, 0.0, 0.6]))
+        uv = camera.project(se3.transform_points(T_CO, keypoints_O))
+        req = pb.EstimateRequest(estimator=estimator, object_id="default", capture_time_ns=int(k * 1e9 / fps),
+                                 intrinsics=intrinsics,
+                                 keypoints=[pb.Keypoint(id=i, u=float(u), v=float(v)) for i, (u, v) in enumerate(uv)],
+                                 image=pb.Image(encoding=pb.Image.JPEG, data=image, width=camera.width,
+                                                height=camera.height))
+        _pad(req, int(payload_kb * 1024), rng)
+        templates.append(FrameTemplate(req.capture_time_ns, req.SerializeToString()))
+    return Workload(templates)

@@ -41,6 +41,15 @@ def oracle_registry(sequence_roots: list[Path], noise_seed: int = 0) -> Estimato
     ], default="gt")
 
 
+def wait_ready(channel: grpc.Channel, address: str, timeout_s: float = 3.0) -> None:
+    """ConnectionError, saying what to do, when the channel to `address` is not ready within `timeout_s`."""
+    try:
+        grpc.channel_ready_future(channel).result(timeout=timeout_s)
+    except grpc.FutureTimeoutError:
+        raise ConnectionError(f"nothing answered at {address} within {timeout_s:g} s; start a server there "
+                              "(`flextrack serve --port PORT`) or check the address") from None
+
+
 class InProcessBackend:
     def __init__(self, registry: EstimatorRegistry, network: NetworkOptions):
         self.service = EstimationService(registry)
@@ -61,7 +70,11 @@ class GrpcBackend:
     def __init__(self, address: str, network: NetworkOptions, timeout_s: float = 30.0):
         self.interceptor = LatencyInterceptor(network, live=False)
         self._channel = grpc.insecure_channel(address)
-        grpc.channel_ready_future(self._channel).result(timeout=timeout_s)
+        try:
+            wait_ready(self._channel, address, timeout_s)
+        except ConnectionError:
+            self._channel.close()
+            raise
         stub = pb_grpc.PoseEstimationStub(grpc.intercept_channel(self._channel, self.interceptor))
         self._outbox: queue.Queue = queue.Queue()
         self._responses = stub.Track(iter(self._outbox.get, None))

@@ -84,7 +84,8 @@ def track(seq: Sequence, tracker_options: TrackerOptions, spec: RunSpec,
     if spec.server is None:
         registry = registry or registry_for(seq, spec)
         if spec.backend not in registry.names():
-            raise ValueError(f"unknown estimator '{spec.backend}'; available: {registry.names()}")
+            raise ValueError(f"unknown estimator '{spec.backend}'; available: {registry.names()} "
+                             "(pass --config FILE for an estimator config that lists it)")
     with ExitStack() as stack:
         frame_jpeg = None
         if spec.frames:

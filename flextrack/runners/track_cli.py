@@ -16,9 +16,10 @@ from client_sdk import FilterOptions, TrackerOptions
 from client_sdk.network_model import NetworkOptions
 from client_sdk.options import PRESETS, preset
 from client_sdk.slowdown import PIXEL2_FACTOR
+from flextrack.assets import default_config_path
 from flextrack.formats import sequence as sequence_io
 from flextrack.provenance import of_args
-from flextrack.runners import session
+from flextrack.runners import cli_checks, session
 from flextrack.runners.backends import ORACLE_BACKENDS as ORACLES
 from flextrack.runners.results import format_table
 
@@ -30,7 +31,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backend", default="gt", help="estimator: gt or noisy (oracles served from the sequence's "
                         "ground truth), or a name from --config (e.g. pvnet)")
     parser.add_argument("--config", type=Path, help="estimator config (TOML) for the embedded server instead of the "
-                        "oracles; its gt_oracle estimators are given this sequence")
+                        "oracles; its gt_oracle estimators are given this sequence (default: the oracles for gt and "
+                        "noisy, service/default_config.toml for any other --backend)")
     parser.add_argument("--server", help="HOST:PORT of a running server to use instead of an embedded one")
     parser.add_argument("--live", action="store_true", help="run in real time through the sleeping interceptor")
     parser.add_argument("--speed", type=float, default=1.0, help="with --live: play the sequence this much faster")
@@ -98,7 +100,29 @@ def tracker_options(args) -> TrackerOptions:
     return replace(flags, filter=replace(flags.filter, **filter_set), **tracker_set)
 
 
+def argument_problem(args) -> str | None:
+    """One line for an argument that cannot work, before any work is done."""
+    if args.speed != 1.0 and not args.live:
+        return "--speed plays a --live run faster; add --live, or drop --speed (a replay runs in virtual time)"
+    if not args.speed > 0:
+        return f"--speed must be > 0, got {args.speed}"
+    if args.server and args.config:
+        return "--config configures the embedded server; with --server the running server's own config is used"
+    return cli_checks.out_folder_problem(args.out)
+
+
 def run(args) -> int:
+    problem = argument_problem(args)
+    if problem:
+        print(f"flextrack track: {problem}", file=sys.stderr)
+        return 2
+    if args.server:
+        problem = cli_checks.server_problem(args.server)
+        if problem:
+            print(f"flextrack track: {problem}, or drop --server to track against an embedded one", file=sys.stderr)
+            return 1
+    if args.config is None and args.server is None and args.backend not in ORACLES:
+        args.config = default_config_path()  # pvnet, region, ...: the estimators `flextrack serve` has
     try:
         seq = sequence_io.load(args.sequence)
         if args.fps:

@@ -34,9 +34,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from flextrack.runners.cli_checks import out_folder_problem
     from flextrack.simulator.generate import generate_sequence
     from flextrack.simulator.plots import plot_sequence
 
+    problem = out_folder_problem(args.out)
+    if problem:
+        print(f"flextrack simulate: {problem}", file=sys.stderr)
+        return 2
     start = time.perf_counter()
     try:
         root = generate_sequence(

@@ -26,9 +26,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from flextrack.formats.sequence import load
+    from flextrack.runners.cli_checks import out_folder_problem
     from flextrack.simulator.euroc_convert import convert_euroc
     from flextrack.simulator.plots import plot_sequence
 
+    problem = out_folder_problem(args.out)
+    if problem:
+        print(f"flextrack convert-euroc: {problem}", file=sys.stderr)
+        return 2
     try:
         root = convert_euroc(args.euroc, args.out, fps=args.fps,
                              object_path=None if args.object == "default" else args.object, object_id=args.object_id,

@@ -1,0 +1,129 @@
+"""Every command fails on a bad argument, path, port, config or unreachable server with one line on stderr
+that says what is wrong and what to do, a non-zero exit and no traceback (issue 19, points 10-14); and
+`flextrack loadtest` against the default server config gets OK answers out of the box."""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+
+from flextrack.cli import main
+from flextrack.testing.toy_sequence import write_orbit_sequence
+
+
+def one_line(capsys) -> str:
+    """The command's stderr: exactly one line, no traceback."""
+    err = capsys.readouterr().err.strip()
+    assert "Traceback" not in err and len(err.splitlines()) == 1, err
+    return err
+
+
+def free_port() -> int:
+    """A loopback port where nothing listens."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def seq(tmp_path_factory):
+    return write_orbit_sequence(tmp_path_factory.mktemp("seq") / "orbit", frames=30)
+
+
+@pytest.fixture(scope="module")
+def default_server():
+    from estimators.registry import EstimatorRegistry
+    from flextrack.assets import default_config_path
+    from service.server import BackgroundServer
+
+    with BackgroundServer(EstimatorRegistry.from_config(default_config_path()), grace_s=0.0) as srv:
+        yield srv
+
+
+def test_loadtest_against_the_default_server_gets_ok_answers(default_server, tmp_path, capsys):
+    rc = main(["loadtest", "--target", default_server.address, "--clients", "2", "--duration", "0.6",
+               "--warmup", "0.2", "--payload-kb", "5", "--out", str(tmp_path)])
+    assert rc == 0, capsys.readouterr().err
+    summary = json.loads((tmp_path / "load_summary.json").read_text())
+    assert set(summary["outcomes"]) == {"OK"} and summary["answered"] > 5
+
+
+def test_loadtest_with_mostly_error_answers_exits_non_zero_saying_why(default_server, tmp_path, capsys):
+    rc = main(["loadtest", "--target", default_server.address, "--clients", "1", "--duration", "0.4",
+               "--warmup", "0.1", "--payload-kb", "5", "--estimator", "gt_oracle", "--out", str(tmp_path)])
+    assert rc == 1
+    err = one_line(capsys)
+    assert "status:INVALID_INPUT" in err and "sequence_roots" in err
+
+
+@pytest.mark.parametrize("target", ["localhost", "foo:bar", "127.0.0.1:70000"])
+def test_loadtest_malformed_target(target, tmp_path, capsys):
+    assert main(["loadtest", "--target", target, "--out", str(tmp_path)]) == 2
+    assert "expected HOST:PORT" in one_line(capsys)
+
+
+def test_loadtest_where_nothing_listens(tmp_path, capsys):
+    assert main(["loadtest", "--target", f"127.0.0.1:{free_port()}", "--duration", "0.5", "--out", str(tmp_path)]) == 1
+    assert "nothing answered" in one_line(capsys)
+
+
+def test_track_against_a_server_where_nothing_listens_fails_fast(seq, tmp_path, capsys):
+    start = time.perf_counter()
+    rc = main(["track", str(seq.root), "--server", f"127.0.0.1:{free_port()}", "--out", str(tmp_path / "o")])
+    assert rc == 1 and time.perf_counter() - start < 10
+    err = one_line(capsys)
+    assert "nothing answered" in err and "flextrack serve" in err
+
+
+def test_track_non_oracle_backend_uses_the_default_config(seq, tmp_path, capsys):
+    # an estimator no config has: the names listed are the default config's (pvnet among them), and --config is named
+    rc = main(["track", str(seq.root), "--backend", "nosuch", "--no-plots", "--out", str(tmp_path / "o")])
+    assert rc == 2
+    err = one_line(capsys)
+    assert "'pvnet'" in err and "--config" in err
+
+
+def test_track_folder_that_is_not_a_sequence(tmp_path, capsys):
+    assert main(["track", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    assert "not a sequence folder (no rig.yaml)" in one_line(capsys)
+
+
+def test_track_corrupt_rig_yaml(seq, tmp_path, capsys):
+    import shutil
+
+    root = tmp_path / "broken"
+    shutil.copytree(seq.root, root)
+    (root / "rig.yaml").write_text("T_BC: [1, 2\n  width: : :\n")
+    assert main(["track", str(root), "--out", str(tmp_path / "o")]) == 2
+    assert "rig.yaml: not valid YAML" in one_line(capsys)
+
+
+@pytest.mark.parametrize("command", ["track", "simulate"])
+def test_out_naming_an_existing_file_is_refused_before_any_work(command, seq, tmp_path, capsys):
+    existing = tmp_path / "file.txt"
+    existing.write_text("x")
+    argv = ["track", str(seq.root)] if command == "track" else ["simulate", "--duration", "1"]
+    start = time.perf_counter()
+    assert main([*argv, "--out", str(existing)]) == 2
+    assert time.perf_counter() - start < 5
+    assert "is an existing file" in one_line(capsys)
+
+
+def test_track_speed_without_live_is_refused(seq, tmp_path, capsys):
+    assert main(["track", str(seq.root), "--speed", "4", "--out", str(tmp_path / "o")]) == 2
+    assert "--live" in one_line(capsys)
+
+
+def test_serve_negative_port_is_refused(capsys):
+    assert main(["serve", "--port", "-3"]) == 2
+    assert "--port" in one_line(capsys)
+
+
+def test_flextrack_alone_prints_help_and_exits_2():
+    done = subprocess.run([sys.executable, "-m", "flextrack"], check=False, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "usage: flextrack" in done.stderr and "Traceback" not in done.stderr
