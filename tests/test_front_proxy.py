@@ -4,6 +4,7 @@ pushback, from nginx itself; other calls pass through. The live test needs nginx
 
 from __future__ import annotations
 
+import threading
 import time
 
 import grpc
@@ -24,15 +25,16 @@ def test_config_bounds_track_streams_and_answers_the_excess_as_grpc(tmp_path):
     assert "limit_conn streams" not in front_proxy.render_config("127.0.0.1:5000", 6000, None, tmp_path)
 
 
-def _no_frames():
-    """Sends nothing for 30 s: the stream stays open, as a device's does between frames."""
-    time.sleep(30)
+def _no_frames(stop: threading.Event):
+    """Sends nothing until `stop` (the test sets it when done): the stream stays open, as a device's does
+    between frames, and no generator is left sleeping behind the test."""
+    stop.wait(60)
     yield from ()
 
 
-def _open_track(channel: grpc.Channel):
+def _open_track(channel: grpc.Channel, stop: threading.Event):
     """A Track stream that sends nothing; its code once the server (or the gate) has answered it."""
-    call = pb_grpc.PoseEstimationStub(channel).Track(_no_frames(), timeout=10.0)
+    call = pb_grpc.PoseEstimationStub(channel).Track(_no_frames(stop), timeout=30.0)
     try:
         call.initial_metadata()
         return call, (call.code() if call.done() else None)
@@ -45,26 +47,28 @@ def test_nginx_refuses_the_device_past_its_bound_and_passes_the_rest(tmp_path):
     server = servers.start_serve(["--log-level", "WARNING"])
     proxy = None
     channels: list[grpc.Channel] = []
+    stop = threading.Event()
     try:
         proxy = front_proxy.start_nginx(server.address, 1, tmp_path / "nginx")
         channels = [grpc.insecure_channel(proxy.address) for _ in range(2)]
-        first, code = _open_track(channels[0])
+        first, code = _open_track(channels[0], stop)
         assert code is None  # admitted: the stream stays open
-        second, code = _open_track(channels[1])
+        second, code = _open_track(channels[1], stop)
         assert code == grpc.StatusCode.RESOURCE_EXHAUSTED
         pushback = dict(second.trailing_metadata() or ())
         assert 1000 <= int(pushback["grpc-retry-pushback-ms"]) <= 3000
-        estimators = pb_grpc.PoseEstimationStub(channels[1]).ListEstimators(pb.ListEstimatorsRequest(), timeout=5)
+        estimators = pb_grpc.PoseEstimationStub(channels[1]).ListEstimators(pb.ListEstimatorsRequest(), timeout=30)
         assert "gt_oracle" in {e.name for e in estimators.estimators}  # other calls are not bounded
         first.cancel()
-        for _ in range(50):  # the slot frees once nginx has seen the first stream end
-            again, code = _open_track(channels[1])
+        for _ in range(300):  # the slot frees once nginx has seen the first stream end (polled, 30 s at most)
+            again, code = _open_track(channels[1], stop)
             again.cancel()
             if code is None:
                 break
             time.sleep(0.1)
         assert code is None
     finally:
+        stop.set()
         for channel in channels:
             channel.close()
         if proxy is not None:

@@ -54,11 +54,11 @@ def _request(seq) -> pb.EstimateRequest:
 
 
 def _estimate(channel, seq, metadata=()):
-    return pb_grpc.PoseEstimationStub(channel).Estimate(_request(seq), timeout=5, metadata=metadata)
+    return pb_grpc.PoseEstimationStub(channel).Estimate(_request(seq), timeout=30, metadata=metadata)
 
 
 def _track(channel, seq, metadata=()):
-    return list(pb_grpc.PoseEstimationStub(channel).Track(iter([_request(seq)]), timeout=5, metadata=metadata))
+    return list(pb_grpc.PoseEstimationStub(channel).Track(iter([_request(seq)]), timeout=30, metadata=metadata))
 
 
 def test_tls_server_answers_a_client_that_trusts_its_ca(registry, pki):
@@ -101,7 +101,7 @@ def test_token_is_required_on_every_method_but_health(registry, caplog):
         stub = pb_grpc.PoseEstimationStub(channel)
         for metadata in ((), client_credentials.token_metadata(wrong), (("authorization", TOKEN),)):
             calls = (lambda md: _estimate(channel, seq, md), lambda md: _track(channel, seq, md),
-                     lambda md: stub.ListEstimators(pb.ListEstimatorsRequest(), timeout=5, metadata=md))
+                     lambda md: stub.ListEstimators(pb.ListEstimatorsRequest(), timeout=30, metadata=md))
             for call in calls:
                 with pytest.raises(grpc.RpcError) as err:
                     call(metadata)
@@ -110,7 +110,7 @@ def test_token_is_required_on_every_method_but_health(registry, caplog):
         good = client_credentials.token_metadata(TOKEN)
         assert _estimate(channel, seq, good).status == pb.EstimateResponse.OK
         assert [r.status for r in _track(channel, seq, good)] == [pb.EstimateResponse.OK]
-        health = health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(), timeout=5)
+        health = health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(), timeout=30)
         assert health.status == health_pb2.HealthCheckResponse.SERVING  # probes need no secret
     assert "refused a call" in caplog.text
     assert wrong not in caplog.text and TOKEN not in caplog.text

@@ -4,6 +4,7 @@ import threading
 import time
 
 import grpc
+import numpy as np
 import pytest
 
 from client_sdk import network_model as nm
@@ -14,6 +15,7 @@ from flextrack.runners.payload import PAPER_JPEG_BYTES, stand_in_jpeg
 from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
 from service.hardening import Hardening
+from service.metrics import ServiceMetrics
 from service.server import BackgroundServer
 
 FAST = TransportOptions(request_timeout_s=2.0, connect_timeout_s=0.2, backoff_initial_s=0.02, backoff_max_s=0.2)
@@ -146,28 +148,54 @@ def test_retry_pushback_is_read_from_the_trailer(value, seconds):
     assert retry_pushback_s(None) == 0.0
 
 
-def _refusals_seen_by_a_full_server(pushback_ms: float, seconds: float = 1.0) -> int:
-    """A TrackClient retries against a server whose only stream slot is held; how often was it refused?"""
-    hardening = Hardening(max_streams=1, retry_pushback_ms=pushback_ms)
+class _RefusalTimes(ServiceMetrics):
+    """The server's metrics, also noting when each refusal happened (under a condition the test waits on)."""
+
+    def __init__(self):
+        super().__init__()
+        self.times: list[float] = []
+        self.changed = threading.Condition()
+
+    def observe(self, method, estimator, code, seconds):
+        super().observe(method, estimator, code, seconds)
+        if code == "RESOURCE_EXHAUSTED":
+            with self.changed:
+                self.times.append(time.monotonic())
+                self.changed.notify_all()
+
+    def wait_for(self, n: int, timeout_s: float = 60.0) -> list[float]:
+        with self.changed:
+            assert self.changed.wait_for(lambda: len(self.times) >= n, timeout_s), f"fewer than {n} refusals"
+            return list(self.times[:n])
+
+
+def _refusal_times(pushback_ms: float, n: int) -> list[float]:
+    """A TrackClient retries against a server whose only stream slot is held: when were its first n refusals?"""
+    metrics = _RefusalTimes()
+    hardening = Hardening(max_streams=1, retry_pushback_ms=pushback_ms, metrics=metrics)
     stop = threading.Event()
 
     def no_frames():
-        stop.wait(10)
+        stop.wait(60)
         yield from ()
 
     with BackgroundServer(EstimatorRegistry(), grace_s=0.0, hardening=hardening) as srv, \
             grpc.insecure_channel(srv.address) as channel:
         held = pb_grpc.PoseEstimationStub(channel).Track(no_frames())
-        held.initial_metadata()
-        inbox = _Inbox()
-        with TrackClient(srv.address, inbox.on_response, inbox.on_failure, options=FAST):
-            time.sleep(seconds)
-        stop.set()
-        held.cancel()
-    return hardening.metrics.count("RESOURCE_EXHAUSTED", "Track", "-")
+        try:
+            held.initial_metadata()
+            inbox = _Inbox()
+            with TrackClient(srv.address, inbox.on_response, inbox.on_failure, options=FAST):
+                return metrics.wait_for(n)
+        finally:  # the held stream's request generator ends whatever happens
+            stop.set()
+            held.cancel()
 
 
 def test_track_client_waits_as_long_as_a_refusing_server_asks():
-    eager = _refusals_seen_by_a_full_server(pushback_ms=0)  # backoff alone: 20 ms doubling to 200 ms
-    patient = _refusals_seen_by_a_full_server(pushback_ms=1000)  # 0.5-1.5 s between tries
-    assert eager >= 4 and 1 <= patient <= 2, (eager, patient)
+    """Event-driven: wait for the refusals themselves, then compare the gaps between them (lower bounds only,
+    which a slow machine cannot break): with a 1 s pushback (jittered 0.5-1.5 s) the client waits at least
+    0.5 s between tries; without one, backoff alone (20 ms doubling to 200 ms) retries."""
+    patient = np.diff(_refusal_times(pushback_ms=1000, n=3))
+    assert np.all(patient >= 0.5), patient
+    assert len(_refusal_times(pushback_ms=0, n=4)) == 4  # without a pushback it keeps retrying on its backoff
