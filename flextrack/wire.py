@@ -61,6 +61,12 @@ def check_covariance(cov, name: str = "covariance") -> np.ndarray:
     return c
 
 
+def intrinsics_to_pb(camera) -> pb.Intrinsics:
+    """The wire intrinsics of a PinholeCamera (fx, fy, cx, cy, width, height and its distortion, never dropped)."""
+    return pb.Intrinsics(fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy, width=camera.width,
+                         height=camera.height, distortion=list(camera.distortion))
+
+
 def covariance_to_pb(cov: np.ndarray | None) -> pb.PoseCovariance | None:
     return None if cov is None else pb.PoseCovariance(data=np.asarray(cov, dtype=float).ravel().tolist())
 

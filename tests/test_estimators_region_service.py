@@ -62,8 +62,7 @@ def request(png, prior=None, estimator="region", **kw):
     return pb.EstimateRequest(
         session_id="s1", frame_id=1, estimator=estimator, object_id="default", prior=prior,
         image=pb.Image(encoding=pb.Image.PNG, data=png, width=CAMERA.width, height=CAMERA.height),
-        intrinsics=pb.Intrinsics(fx=CAMERA.fx, fy=CAMERA.fy, cx=CAMERA.cx, cy=CAMERA.cy, width=CAMERA.width,
-                                 height=CAMERA.height), **kw)
+        intrinsics=wire.intrinsics_to_pb(CAMERA), **kw)
 
 
 def prior_pb(T, cov=None):
@@ -97,7 +96,7 @@ def test_a_prior_that_is_not_rigid_is_refused(world):
 ])
 def test_a_covariance_not_positive_definite_is_refused(world, cov, why):
     stub, png, T, _ = world
-    msg = pb.PosePrior(pose=wire.pose_to_pb(T), covariance=pb.PoseCovariance(data=cov.ravel().tolist()))
+    msg = pb.PosePrior(pose=wire.pose_to_pb(T), covariance=wire.covariance_to_pb(cov))
     with pytest.raises(grpc.RpcError) as err:
         stub.Estimate(request(png, msg))
     assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and why in err.value.details()

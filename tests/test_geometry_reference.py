@@ -123,3 +123,16 @@ def test_metrics_match_the_bop_toolkit_definitions():
     many = metrics.proj_px_many(T_est, T_gt, camera, pts)
     np.testing.assert_allclose(many, [_bop_proj(e[:3, :3], e[:3, 3], g[:3, :3], g[:3, 3], camera.K, pts)
                                       for e, g in zip(T_est, T_gt)], rtol=1e-9)
+
+
+def test_wire_conversions_round_trip_and_keep_the_distortion():
+    from flextrack import wire
+
+    camera = PinholeCamera(572.4, 573.6, 325.3, 242.0, 640, 480, (0.1, -0.05, 0.001, 0.002, 0.0))
+    msg = wire.intrinsics_to_pb(camera)
+    assert (msg.fx, msg.fy, msg.cx, msg.cy, msg.width, msg.height) == (572.4, 573.6, 325.3, 242.0, 640, 480)
+    assert list(msg.distortion) == pytest.approx(camera.distortion)
+    for T, _ in _pose_pairs(5):
+        np.testing.assert_allclose(wire.pose_from_pb(wire.pose_to_pb(T)), T, atol=1e-12)
+    cov = np.diag([1e-4] * 3 + [1e-6] * 3)
+    np.testing.assert_array_equal(wire.covariance_from_pb(wire.covariance_to_pb(cov)), cov)

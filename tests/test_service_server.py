@@ -15,6 +15,7 @@ from estimators.gt_oracle import GtOracleEstimator
 from estimators.objects import ObjectRegistry, load_object
 from estimators.pnp import PnpEstimator
 from estimators.registry import EstimatorRegistry
+from flextrack import wire
 from flextrack.formats import sequence as sequence_io
 from flextrack.geometry import metrics, se3, so3
 from flextrack.geometry.camera import PinholeCamera
@@ -60,8 +61,7 @@ def stub(channel):
 
 
 def intrinsics(camera=CAMERA) -> pb.Intrinsics:
-    return pb.Intrinsics(fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy, width=camera.width,
-                         height=camera.height, distortion=list(camera.distortion))
+    return wire.intrinsics_to_pb(camera)
 
 
 def pnp_request(objects, frame_id=1, **kw) -> pb.EstimateRequest:
@@ -78,7 +78,7 @@ def oracle_request(seq, frame_id=1, **kw) -> pb.EstimateRequest:
 
 
 def pose_matrix(pose: pb.Pose) -> np.ndarray:
-    return se3.from_quat_translation(np.array([pose.qw, pose.qx, pose.qy, pose.qz]), [pose.tx, pose.ty, pose.tz])
+    return wire.pose_from_pb(pose)
 
 
 def test_list_estimators(stub):

@@ -103,7 +103,7 @@ def _device(seq, address: str, sample_s: float, fusion: str) -> list[dict]:
     client = TrackClient(address, on_response=inbox.put, on_failure=lambda frame_id, why: inbox.put(frame_id),
                          interceptors=[interceptor])
     cam = seq.camera
-    intrinsics = pb.Intrinsics(fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy, width=cam.width, height=cam.height)
+    intrinsics = wire.intrinsics_to_pb(cam)
     events = sorted([(int(t), 0, i) for i, t in enumerate(seq.imu.t_ns)]
                     + [(int(t), 1, i) for i, t in enumerate(seq.frame_times_ns)])
     requests: dict[int, int] = {}  # frame id -> the tracker's request id

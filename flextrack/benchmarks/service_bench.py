@@ -22,6 +22,7 @@ import cv2
 import grpc
 import numpy as np
 
+from flextrack import wire
 from flextrack.geometry.camera import PinholeCamera
 from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
@@ -76,7 +77,7 @@ def _cpu_s(pid: int) -> float:
 
 def _requests(jpeg: bytes, times_ns: np.ndarray, sequence: str, count: int = 1000) -> list[pb.EstimateRequest]:
     cam = PinholeCamera.linemod()
-    intrinsics = pb.Intrinsics(fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy, width=cam.width, height=cam.height)
+    intrinsics = wire.intrinsics_to_pb(cam)
     image = pb.Image(encoding=pb.Image.JPEG, data=jpeg, width=cam.width, height=cam.height)
     return [pb.EstimateRequest(session_id="bench", frame_id=i, capture_time_ns=int(times_ns[i % len(times_ns)]),
                                sequence=sequence, image=image, intrinsics=intrinsics) for i in range(count)]

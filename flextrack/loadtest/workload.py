@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flextrack import wire
 from flextrack.v1 import pose_estimation_pb2 as pb
 
 
@@ -78,9 +79,7 @@ def from_sequence(root: str | Path, payload_kb: float, estimator: str = "", max_
 
     seq = sequence_io.load(root)
     rng = np.random.default_rng(seed)
-    cam = seq.camera
-    intrinsics = pb.Intrinsics(fx=cam.K[0, 0], fy=cam.K[1, 1], cx=cam.K[0, 2], cy=cam.K[1, 2],
-                               width=cam.width, height=cam.height, distortion=list(cam.distortion))
+    intrinsics = wire.intrinsics_to_pb(seq.camera)
     step = max(1, len(seq.frame_ids) // max_frames)
     templates = []
     for frame_id, t_ns in list(zip(seq.frame_ids, seq.frame_times_ns))[::step][:max_frames]:
@@ -102,8 +101,7 @@ def from_images(images: list[np.ndarray], camera, payload_kb: float, estimator: 
                 fps: float = 30.0, seed: int = 0) -> Workload:
     """Frames from RGB images (e.g. rendered views of an object) for an estimator that looks at pixels."""
     rng = np.random.default_rng(seed)
-    intrinsics = pb.Intrinsics(fx=camera.K[0, 0], fy=camera.K[1, 1], cx=camera.K[0, 2], cy=camera.K[1, 2],
-                               width=camera.width, height=camera.height, distortion=list(camera.distortion))
+    intrinsics = wire.intrinsics_to_pb(camera)
     templates = []
     for k, rgb in enumerate(images):
         req = pb.EstimateRequest(estimator=estimator, object_id=object_id, capture_time_ns=int(k * 1e9 / fps),
@@ -128,8 +126,7 @@ def keypoint_frames(payload_kb: float, estimator: str = "pnp", fps: float = 30.0
 
     keypoints_O = load_object("default", default_object_model()).keypoints
     camera = PinholeCamera.linemod()
-    intrinsics = pb.Intrinsics(fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy, width=camera.width,
-                               height=camera.height)
+    intrinsics = wire.intrinsics_to_pb(camera)
     rng = np.random.default_rng(seed)
     image = _jpeg(rng.integers(0, 256, (camera.height // 8, camera.width // 8, 3), dtype=np.uint8)
                   .repeat(8, 0).repeat(8, 1))

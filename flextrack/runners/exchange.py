@@ -33,18 +33,13 @@ def tracker_for(seq: Sequence, vertices_O: np.ndarray, options: TrackerOptions |
     return create_tracker(options, seq.camera, seq.T_BC, bbox_corners(vertices_O))
 
 
-def intrinsics_of(camera) -> pb.Intrinsics:
-    return pb.Intrinsics(fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy, width=camera.width,
-                         height=camera.height, distortion=list(camera.distortion))
-
-
 def frame_request(seq: Sequence, tracker, frame_id: int, capture_time_ns: int, image: bytes, *, session_id: str,
                   estimator: str, client_state: bytes) -> pb.EstimateRequest:
     """The request for one frame, with the tracker's prior at the capture time once it has one."""
     return make_request(
         frame_id=frame_id, capture_time_ns=capture_time_ns, session_id=session_id, estimator=estimator,
         object_id=seq.object_id, sequence=seq.name, image=image, width=seq.camera.width,
-        height=seq.camera.height, intrinsics=intrinsics_of(seq.camera), client_state=client_state,
+        height=seq.camera.height, intrinsics=wire.intrinsics_to_pb(seq.camera), client_state=client_state,
         prior=prior_of(tracker, capture_time_ns))
 
 
