@@ -137,8 +137,7 @@ class FilterTracker(TrackerBase):
         last = buf.last_t_ns
         s = imu_sample(t_ns, gyro, accel, last)
         t = s[0]
-        if buf.samples:
-            self._prop.observe(buf.samples[-1], s)
+        self._prop.observe(s)
         new = None
         if self._anchor is not None:
             prev = buf.samples[-1] if buf.samples else s
