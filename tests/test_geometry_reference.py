@@ -136,3 +136,25 @@ def test_wire_conversions_round_trip_and_keep_the_distortion():
         np.testing.assert_allclose(wire.pose_from_pb(wire.pose_to_pb(T)), T, atol=1e-12)
     cov = np.diag([1e-4] * 3 + [1e-6] * 3)
     np.testing.assert_array_equal(wire.covariance_from_pb(wire.covariance_to_pb(cov)), cov)
+
+
+def test_exp_many_is_exp_row_by_row():
+    phi = np.concatenate([ROTVECS, -ROTVECS[:50]])
+    many = so3.exp_many(phi)
+    np.testing.assert_allclose(many, Rotation.from_rotvec(phi).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(many, np.stack([so3.exp(v) for v in phi]), atol=1e-14)
+
+
+def test_look_at_puts_the_target_on_the_axis_with_up_at_the_top_of_the_image():
+    from flextrack.geometry.camera import look_at
+
+    camera = PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480)
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        eye, target = rng.normal(size=3), rng.normal(size=3) * 0.1
+        R_CW = look_at(eye, target)
+        assert np.allclose(R_CW @ R_CW.T, np.eye(3)) and np.isclose(np.linalg.det(R_CW), 1.0)
+        T_CW = se3.make(R_CW, -R_CW @ eye)
+        uv = camera.project(se3.transform_points(T_CW, np.stack([target, target + [0, 0, 0.01]])))
+        np.testing.assert_allclose(uv[0], [320.0, 240.0], atol=1e-9)
+        assert uv[1, 1] < uv[0, 1]  # world up is up in the image (OpenCV y down)

@@ -24,6 +24,8 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from flextrack.geometry.camera import look_at as camera_look_at
+
 MODEL_FORMAT = 1
 
 
@@ -63,13 +65,10 @@ def geodesic_directions(subdivisions: int) -> np.ndarray:
 
 def look_at(direction: np.ndarray, center: np.ndarray, distance: float) -> tuple[np.ndarray, np.ndarray]:
     """R_CO, t_CO of a camera at centre + distance * direction looking at the centre (OpenCV axes)."""
-    z = -direction / np.linalg.norm(direction)
-    helper = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    x = np.cross(helper, z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])  # rows: camera axes in the object frame
-    return R, -R @ (center + distance * direction)
+    eye = center + distance * direction
+    helper = np.array([0.0, 0.0, 1.0]) if abs(direction[2]) < 0.9 * np.linalg.norm(direction) else np.array([1.0, 0.0, 0.0])
+    R = camera_look_at(eye, center, up=-helper)  # rows: camera axes in the object frame
+    return R, -R @ eye
 
 
 class _Silhouette:

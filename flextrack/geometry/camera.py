@@ -43,6 +43,16 @@ class PinholeCamera:
         )
 
 
+def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """R_CW of an OpenCV camera (x right, y down, z forward) at `eye` looking at `target`, with `up` (a
+    world direction not along the view) pointing up in the image: rows are the camera's axes in W."""
+    z = np.asarray(target, dtype=float) - np.asarray(eye, dtype=float)
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, np.asarray(up, dtype=float))
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z])
+
+
 def project_model(camera: PinholeCamera, T_CO: np.ndarray, points_O: np.ndarray) -> np.ndarray:
     """Pixels of object-frame points seen with pose T_CO."""
     return camera.project(se3.transform_points(T_CO, points_O))

@@ -38,6 +38,19 @@ def exp(phi: np.ndarray) -> np.ndarray:
     )
 
 
+def exp_many(phi: np.ndarray) -> np.ndarray:
+    """`exp` of (N, 3) rotation vectors at once, (N, 3, 3): the same Rodrigues formula, vectorised (the
+    simulator's integrator and motion programs)."""
+    phi = np.asarray(phi, dtype=float)
+    angle = np.linalg.norm(phi, axis=1)
+    small = angle < 1e-8
+    safe = np.where(small, 1.0, angle)
+    a = np.where(small, 1.0 - angle**2 / 6, np.sin(safe) / safe)[:, None, None]
+    b = np.where(small, 0.5 - angle**2 / 24, (1 - np.cos(safe)) / safe**2)[:, None, None]
+    K = skew_batch(phi)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
 def log(R: np.ndarray) -> np.ndarray:
     """Rotation vector of R (inverse of `exp`), robust near 0 and pi."""
     return rotvec_from_quat(quat_from_matrix(R))

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.interpolate import CubicSpline
 
+from flextrack.geometry import so3
 from flextrack.simulator.kinematics import GRAVITY_W
 
 _GAUSS = 0.5 - np.sqrt(3) / 6, 0.5 + np.sqrt(3) / 6
@@ -32,21 +33,8 @@ class Integrated:
     v_WB: np.ndarray  # (N, 3)
 
 
-def _exp(phi: np.ndarray) -> np.ndarray:
-    """Batched Rodrigues: (N, 3) rotation vectors -> (N, 3, 3)."""
-    angle = np.linalg.norm(phi, axis=1)
-    small = angle < 1e-8
-    safe = np.where(small, 1.0, angle)
-    a = np.where(small, 1.0 - angle**2 / 6, np.sin(safe) / safe)[:, None, None]
-    b = np.where(small, 0.5 - angle**2 / 24, (1 - np.cos(safe)) / safe**2)[:, None, None]
-    K = np.zeros((len(phi), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -phi[:, 2], phi[:, 1], -phi[:, 0]
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = phi[:, 2], -phi[:, 1], phi[:, 0]
-    return np.eye(3) + a * K + b * (K @ K)
-
-
 def _magnus(w1: np.ndarray, w2: np.ndarray, h: np.ndarray) -> np.ndarray:
-    return _exp(0.5 * h[:, None] * (w1 + w2) + (np.sqrt(3) / 12) * h[:, None] ** 2 * np.cross(w1, w2))
+    return so3.exp_many(0.5 * h[:, None] * (w1 + w2) + (np.sqrt(3) / 12) * h[:, None] ** 2 * np.cross(w1, w2))
 
 
 def _prefix_product(R0: np.ndarray, steps: np.ndarray) -> np.ndarray:

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from flextrack.geometry import so3
 from flextrack.simulator.jet import Jet
 
 GRAVITY_W = np.array([0.0, 0.0, -9.81])  # world z is up
@@ -59,9 +60,7 @@ class Kinematics:
 def axis_rotation(axis: np.ndarray, angle: Jet) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(R, w, alpha) of a rotation by `angle` about a fixed unit axis (Rodrigues, vectorised)."""
     u = np.asarray(axis, float) / np.linalg.norm(axis)
-    K = np.array([[0, -u[2], u[1]], [u[2], 0, -u[0]], [-u[1], u[0], 0]])
-    s, c = np.sin(angle.v)[:, None, None], np.cos(angle.v)[:, None, None]
-    R = np.eye(3) + s * K + (1 - c) * (K @ K)
+    R = so3.exp_many(np.asarray(angle.v, float)[:, None] * u)
     return R, angle.d1[:, None] * u, angle.d2[:, None] * u
 
 

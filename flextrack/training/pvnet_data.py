@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from flextrack.geometry import se3, so3
-from flextrack.geometry.camera import PinholeCamera
+from flextrack.geometry.camera import PinholeCamera, look_at
 
 INPUT_SCALE = 2  # frame -> network input
 OUT_SCALE = 4  # frame -> network output grid
@@ -48,10 +48,7 @@ def look_at_pose(rng: np.random.Generator, camera: PinholeCamera, target: np.nda
     d = rng.uniform(*dist_range)
     el, az = np.radians(rng.uniform(*elevation_deg)), rng.uniform(0, 2 * np.pi)
     position = target + d * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    z = (target - position) / d  # camera looks at the target ...
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    R0 = np.stack([x, np.cross(z, x), z], axis=1)  # x right, y down (world z is up)
+    R0 = look_at(position, target).T  # R_WC: the camera looks at the target, y down (world z is up) ...
     u = rng.uniform(margin_px, camera.width - margin_px)
     v = rng.uniform(margin_px, camera.height - margin_px)
     ray = np.array([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, 1.0])
