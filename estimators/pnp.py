@@ -18,7 +18,7 @@ so 4 keypoints get a factor 3). `floor_px` (0.3 px): keypoints are never located
 and a perfect fit must not claim a pose known exactly. `inflation`: what the model leaves out
 (RANSAC's cut of the residuals, linearisation), fitted by `flextrack evaluate nees` on its tuning
 set (docs/estimators.md). e^T Sigma^-1 e is then 6 on average but not chi2(6): it has an F
-distribution's longer tail (its median is lower, and about 8 % of answers are above chi2(6)'s 95 %
+distribution's longer tail (its median is lower, and 8-10 % of answers are above chi2(6)'s 95 %
 quantile rather than 5 %).
 """
 
