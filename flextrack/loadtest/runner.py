@@ -8,9 +8,9 @@ skipped frames would have to be rebuilt inside it anyway, through a second concu
 
 Each client ticks at `fps`. At a tick it sends the frame if nothing is in flight; ticks that pass
 while a request is out are counted as skipped frames, as a device would drop them. After a failed
-call (a gRPC error: server gone, stream refused) it backs off exponentially with jitter, or as long
-as a refusing server's `grpc-retry-pushback-ms` asks, before the next attempt, as the SDK's
-TrackClient does. Every answer is one `Sample`: send time, latency and an outcome label, `OK`,
+call (a gRPC error: server gone, stream refused) it backs off exponentially with jitter (the SDK's own
+`client_sdk.transport.Backoff` with its default options), or as long as a refusing server's
+`grpc-retry-pushback-ms` asks, before the next attempt, as the SDK's TrackClient does. Every answer is one `Sample`: send time, latency and an outcome label, `OK`,
 `status:<EstimateResponse.Status>` or `grpc:<StatusCode>` for a failed call or stream.
 """
 
@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import grpc
 import numpy as np
 
-from client_sdk.transport import TransportOptions, retry_pushback_s
+from client_sdk.transport import Backoff, TransportOptions, retry_pushback_s
 from flextrack.loadtest.workload import Workload
 from flextrack.v1 import pose_estimation_pb2 as pb
 
@@ -31,7 +31,6 @@ TRACK = "/flextrack.v1.PoseEstimation/Track"
 ESTIMATE = "/flextrack.v1.PoseEstimation/Estimate"
 MAX_MESSAGE_BYTES = 16 * 1024 * 1024
 CONNECT_SETTLE_S = 0.5  # time for a channel to connect to every address of a multi-address target
-BACKOFF_INITIAL_S, BACKOFF_MAX_S = 0.05, 1.0  # after a failed call, as client_sdk.transport's defaults begin
 PUSHBACK_MAX_S = TransportOptions.pushback_max_s
 
 
@@ -122,8 +121,8 @@ async def _client(idx: int, spec: LoadSpec, workload: Workload, channel: grpc.ai
                   offset_s: float, result: LoadResult) -> None:
     period = 1.0 / spec.fps
     next_tick = clock.t0 + offset_s
-    frame, failures = 0, 0
-    jitter = np.random.default_rng([spec.seed, idx])
+    frame = 0
+    backoff = Backoff(TransportOptions(seed=spec.seed * 1_000_003 + idx))  # a device's, seeded per client
     call = None
     deserialize = pb.EstimateResponse.FromString
     track = channel.stream_stream(TRACK, request_serializer=None, response_deserializer=deserialize)
@@ -166,8 +165,11 @@ async def _client(idx: int, spec: LoadSpec, workload: Workload, channel: grpc.ai
             frame += 1
             # A failed call backs off as a device's client does (exponential, jittered, or as long as the
             # server's pushback asks); frames meanwhile are tracked on the IMU, i.e. skipped here.
-            failures = failures + 1 if outcome.startswith("grpc:") else 0
-            retry_at = done + (max(_backoff_s(failures, jitter), min(pushback, PUSHBACK_MAX_S)) if failures else 0.0)
+            if outcome.startswith("grpc:"):
+                retry_at = done + max(backoff.next_s(), min(pushback, PUSHBACK_MAX_S))
+            else:
+                backoff.reset()
+                retry_at = done
             ticks = max(1, int(np.ceil((retry_at - next_tick) / period)))  # the next tick after the answer
             next_tick += ticks * period
             if sent >= clock.measure_from:
@@ -178,9 +180,6 @@ async def _client(idx: int, spec: LoadSpec, workload: Workload, channel: grpc.ai
         _cancel(call)
 
 
-def _backoff_s(failures: int, rng: np.random.Generator) -> float:
-    """BACKOFF_INITIAL_S doubling per failure up to BACKOFF_MAX_S, times U(0.8, 1.2)."""
-    return min(BACKOFF_MAX_S, BACKOFF_INITIAL_S * 2 ** (failures - 1)) * rng.uniform(0.8, 1.2)
 
 
 def _cancel(call) -> None:
