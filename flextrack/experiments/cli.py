@@ -13,8 +13,10 @@ import sys
 import time
 from pathlib import Path
 
+from client_sdk.options import PRESETS
 from flextrack.experiments import paper
 from flextrack.provenance import of_args
+from flextrack.simulator.euroc_cli import xyz
 
 EXPERIMENTS = ("table2", "ablation", "timing", "euroc", "filter")
 
@@ -25,8 +27,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", type=int, default=1, help="table2, filter: number of seeds (0..N-1)")
     parser.add_argument("--seed", type=int, default=0, help="ablation, timing, euroc: the seed")
     parser.add_argument("--duration", type=float, default=30.0, help="seconds of motion per simulated sequence")
-    parser.add_argument("--fps", type=int, nargs="+", choices=paper.FPS,
-                        help="table2: frame rates (default: all four; with --backend 30 and 120)")
+    parser.add_argument("--fps", type=float, nargs="+",
+                        help=f"table2: frame rates among {list(paper.FPS)} (default: all four; with --backend 30 and "
+                        f"120); euroc: the one frame rate (default: {paper.EUROC_FPS:g}, the paper's real-data rate)")
     parser.add_argument("--in-process", action="store_true", help="call the backend in-process instead of gRPC")
     parser.add_argument("--backend", default="oracles",
                         help="table2: 'oracles' (GT and Noisy, the paper's table) or an image estimator of --config "
@@ -39,19 +42,54 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "145 = pvnet with its turned crops and outline refinement on this project's 2-core CPU, "
                         "`flextrack bench pvnet`, with some margin)")
     parser.add_argument("--data", type=Path, help="euroc: the EuRoC folder (default ../shared/data/euroc_v1_02_medium)")
+    parser.add_argument("--preset", choices=PRESETS, default=None,
+                        help="euroc: also run this tracker preset, as `flextrack track --preset` (default: only the "
+                        "experiment's own variants full, bscm_off, filter)")
+    parser.add_argument("--set", action="append", default=[], metavar="OPTION=VALUE",
+                        help="euroc: also run the tracker with this option changed, as `flextrack track --set` "
+                        "(on --preset, default filter; repeatable)")
+    parser.add_argument("--object-distance", type=float, metavar="M",
+                        help="euroc: place the object where the camera looks most at this distance (default: "
+                        "convert-euroc's choice)")
+    parser.add_argument("--object-position", type=xyz, metavar="X,Y,Z",
+                        help="euroc: put the object's centre here, world frame, m (default: placed automatically)")
+
+
+def custom_tracker(args):
+    """(label, TrackerOptions) of --preset/--set, or None when neither is given."""
+    if args.preset is None and not args.set:
+        return None
+    from flextrack.runners.track_cli import tracker_options
+
+    flags = argparse.Namespace(preset=args.preset or "filter", set=args.set, no_bscm=False, no_pia=False,
+                               imu_only=False, integrator=None)
+    return " ".join([f"preset {flags.preset}", *args.set]), tracker_options(flags)
 
 
 def run(args) -> int:
     from flextrack.experiments import ablation, euroc, filter_checks, table2, table2_vision, timing  # the sim extra
+    from flextrack.runners.cli_checks import out_folder_problem
+    from flextrack.runners.scoring import NothingScored
 
+    problem = out_folder_problem(args.out)
+    if args.experiment == "table2" and args.fps and not set(args.fps) <= set(paper.FPS):
+        problem = f"table2 --fps: choose among {list(paper.FPS)}, got {[f'{f:g}' for f in args.fps]}"
+    if args.experiment == "euroc" and args.fps and len(args.fps) != 1:
+        problem = "euroc --fps: give one frame rate"
+    if (args.preset or args.set) and args.experiment != "euroc":
+        problem = "--preset and --set apply to euroc (table2, ablation and filter run their own variants)"
+    if problem:
+        print(f"flextrack experiment {args.experiment}: {problem}", file=sys.stderr)
+        return 2
     args.out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
+    fps = tuple(int(f) for f in args.fps) if args.fps and args.experiment == "table2" else None
     try:
         if args.experiment == "table2" and args.backend != "oracles":
-            table2_vision.run(args.out, args.backend, list(range(args.seeds)), args.duration, tuple(args.fps or (30, 120)),
+            table2_vision.run(args.out, args.backend, list(range(args.seeds)), args.duration, fps or (30, 120),
                               config=args.config or table2_vision.DEFAULT_CONFIG, backend_ms=args.backend_ms)
         elif args.experiment == "table2":
-            table2.run(args.out, list(range(args.seeds)), args.duration, args.in_process, tuple(args.fps or paper.FPS))
+            table2.run(args.out, list(range(args.seeds)), args.duration, args.in_process, fps or paper.FPS)
         elif args.experiment == "ablation":
             ablation.run(args.out, args.seed, args.duration, in_process=args.in_process)
         elif args.experiment == "filter":
@@ -59,7 +97,13 @@ def run(args) -> int:
         elif args.experiment == "timing":
             timing.run(args.out, args.seed, args.duration)
         else:
-            euroc.run(args.out, args.data or euroc.DEFAULT_DATA, args.seed, args.in_process)
+            euroc.run(args.out, args.data or euroc.DEFAULT_DATA, args.seed, args.in_process,
+                      fps=args.fps[0] if args.fps else euroc.FPS, tracker=custom_tracker(args),
+                      object_distance_m=args.object_distance, object_position=args.object_position)
+    except NothingScored as exc:
+        print(f"flextrack experiment {args.experiment}: nothing scored ({args.out / 'euroc.md'}): {exc}",
+              file=sys.stderr)
+        return 1
     except (FileNotFoundError, ValueError) as exc:
         print(f"flextrack experiment {args.experiment}: {exc}", file=sys.stderr)
         return 2

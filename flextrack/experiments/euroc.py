@@ -1,5 +1,5 @@
-"""Real IMU: EuRoC V1_02_medium (ADIS16448 at 200 Hz, Vicon ground truth) with a virtual object
-placed where cam0 sees it, tracked against the Noisy oracle, with and without BSCM (a table like
+"""Real IMU: a recording in the EuRoC layout (by default EuRoC V1_02_medium: ADIS16448 at 200 Hz, Vicon
+ground truth; `--data` for one's own, docs/own-data.md) with a virtual object placed where cam0 sees it, tracked against the Noisy oracle, with and without BSCM (a table like
 the paper's Table 4, which used its own RealSense recordings at 52 FPS).
 
 The converter starts the frames inside the MAV's ~0.7 s of stillness, so the tracker initialises
@@ -16,7 +16,8 @@ in-view frames with a FINE pose and the error over all in-view frames, failures 
 
 from __future__ import annotations
 
-import dataclasses
+import hashlib
+import json
 from pathlib import Path
 
 import numpy as np
@@ -26,45 +27,90 @@ from client_sdk.network_model import NetworkOptions
 from flextrack.experiments import common, paper, plots
 from flextrack.formats import sequence as sequence_io
 from flextrack.runners.replay import ReplayOptions
+from flextrack.runners.scoring import NothingScored, account, in_view_only
 
 HEADER = ["variant", "pos_mm", "ori_deg", "proj_px", "jitter_px", "nees_mean", "worst_fine_px"]
 DEFAULT_DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "euroc_v1_02_medium"
 # "full": the paper-faithful tracker; "filter": the error-state Kalman filter (flextrack.experiments.common.FILTER)
 VARIANTS = {"full": common.PAPER_FAITHFUL, "bscm_off": TrackerOptions(fusion="paper", bscm=False),
             "filter": common.FILTER}
-FPS = 52.0  # the paper's real-data frame rate
+FPS = paper.EUROC_FPS
 OBJECT_SCALE = 4.0  # see module doc
 
 
-def run(out: Path, data: Path = DEFAULT_DATA, seed: int = 0, in_process: bool = False) -> list[list]:
-    from flextrack.simulator.euroc_convert import convert_euroc
-
+def run(out: Path, data: Path = DEFAULT_DATA, seed: int = 0, in_process: bool = False, fps: float = FPS,
+        tracker: tuple[str, TrackerOptions] | None = None, object_scale: float = OBJECT_SCALE,
+        object_distance_m: float | None = None, object_position: tuple[float, float, float] | None = None
+        ) -> list[list]:
+    """Convert `data` (cached under out/sequences, keyed by its files and these options), track it with each
+    variant (and `tracker`, a (label, options) pair, when given), write euroc.md/.csv/.png; NothingScored
+    (after writing them) when no variant scored a frame."""
     if not data.is_dir():
         raise FileNotFoundError(f"EuRoC data folder {data} not found (see shared/data/SOURCES.md); pass --data")
-    root = out / "sequences" / f"euroc_v1_02_medium_{FPS:g}fps_x{OBJECT_SCALE:g}"
-    if not (root / "rig.yaml").is_file():
-        convert_euroc(data, root, fps=FPS, object_scale=OBJECT_SCALE)
-    seq = in_view_only(sequence_io.load(root))
-    rows, series, extra = [], {}, {}
+    seq = in_view_only(sequence_io.load(converted(out, data, fps, object_scale, object_distance_m, object_position)))
+    variants = dict(VARIANTS) | (dict([tracker]) if tracker else {})
+    rows, series, accounts = [], {}, {}
     with common.OracleBackend(noise_seed=seed, in_process=in_process) as oracle, \
-            common.progress(len(VARIANTS), "euroc") as bar:
-        for variant, tracker_options in VARIANTS.items():
+            common.progress(len(variants), "euroc") as bar:
+        for variant, tracker_options in variants.items():
             options = ReplayOptions(network=NetworkOptions(seed=seed), estimator="noisy")
             record = oracle.run(seq, tracker_options, options)
-            scored = record.scored()
-            fine = [r for r in scored if r.status == "FINE"]
+            accounts[variant] = account(record, fine_only=True)
+            fine = [r for r in record.scored() if r.status == "FINE"]
             s = record.summarize()
-            rows.append([variant, *_means(fine), s.jitter_px, s.nees_mean, s.worst_fine_px])
-            extra[variant] = (len(fine), len(scored), *_means(scored))
+            rows.append([variant, *_means(fine), s.jitter_px, s.nees_mean, accounts[variant].worst_fine_px])
             record.write(out / "trajectories", f"euroc_{variant}")
-            t0 = record.rows[0].t_ns
-            series[variant] = ([(r.t_ns - t0) * 1e-9 for r in fine], [r.proj_px for r in fine])
+            series[variant] = _gapped_series(record, fine)
             bar.set_postfix_str(f"{variant}: {rows[-1][3]:.2f} px")
             bar.update()
     common.write_csv(out / "euroc.csv", HEADER, rows)
-    plots.error_over_time(series, out / "euroc.png", "EuRoC V1_02_medium, Noisy backend: 2D error")
-    (out / "euroc.md").write_text(report(rows, seq, seed, extra))
+    plots.error_over_time(series, out / "euroc.png", f"{labels(seq)[0]}, Noisy backend: 2D error (in view, FINE)")
+    (out / "euroc.md").write_text(report(rows, seq, seed, accounts, fps))
+    reasons = {v: a.nothing_scored_reason() for v, a in accounts.items()}
+    if all(reasons.values()):
+        by_reason: dict[str, list[str]] = {}
+        for v, r in reasons.items():
+            by_reason.setdefault(r, []).append(v)
+        raise NothingScored("no variant scored a frame: " + "; ".join(
+            f"{', '.join(vs)}: {r}" if len(by_reason) > 1 else r for r, vs in by_reason.items()))
     return rows
+
+
+def converted(out: Path, data: Path, fps: float, object_scale: float, object_distance_m: float | None,
+              object_position: tuple[float, float, float] | None) -> Path:
+    """The sequence folder converted from `data` with these options: made once, then reused while neither the
+    data's files (names, sizes, modification times) nor the options change."""
+    from flextrack.simulator.euroc_convert import _source_name, convert_euroc
+
+    files = sorted((str(p.relative_to(data)), p.stat().st_size, p.stat().st_mtime_ns)
+                   for p in data.rglob("*") if p.is_file())
+    key = hashlib.sha256(json.dumps([files, fps, object_scale, object_distance_m, object_position]).encode())
+    root = out / "sequences" / f"{_source_name(data)}_{fps:g}fps_x{object_scale:g}_{key.hexdigest()[:12]}"
+    if not (root / "rig.yaml").is_file():
+        convert_euroc(data, root, fps=fps, object_scale=object_scale, object_distance_m=object_distance_m,
+                      object_position=object_position)
+    return root
+
+
+def labels(seq) -> tuple[str, str]:
+    """(recording name, IMU name) from the converted sequence's record of its source."""
+    converter = seq.meta.get("converter", {})
+    name = converter.get("source_name") or Path(converter.get("source", seq.name)).name
+    return name, converter.get("imu", "IMU")
+
+
+def _gapped_series(record, fine) -> tuple[list[float], list[float]]:
+    """(t s, px) of the FINE frames, with a NaN between frames that do not follow each other (no line drawn
+    across a stretch without data)."""
+    t0 = record.rows[0].t_ns if record.rows else 0
+    t, px = [], []
+    for k, r in enumerate(fine):
+        if k and r.index != fine[k - 1].index + 1:
+            t.append((r.t_ns - t0) * 1e-9)
+            px.append(float("nan"))
+        t.append((r.t_ns - t0) * 1e-9)
+        px.append(r.proj_px)
+    return t, px
 
 
 def _means(rows) -> list[float]:
@@ -74,36 +120,39 @@ def _means(rows) -> list[float]:
     return [float(np.mean([getattr(r, k) for r in rows])) for k in ("pos_mm", "ori_deg", "proj_px")]
 
 
-def in_view_only(seq):
-    """The sequence with ground truth kept only where the object's centre is in the image."""
-    def in_view(T) -> bool:
-        centre = T[:3, 3]
-        if centre[2] <= 0:
-            return False
-        u, v = seq.camera.project(centre[None])[0]
-        return 0 <= u < seq.camera.width and 0 <= v < seq.camera.height
-
-    return dataclasses.replace(seq, gt_T_CO={k: T for k, T in seq.gt_T_CO.items() if in_view(T)})
-
-
-def report(rows: list[list], seq, seed: int, extra: dict) -> str:
+def report(rows: list[list], seq, seed: int, accounts: dict, fps: float) -> str:
     paper_rows = [[name, *vals] for name, vals in paper.TABLE4.items()]
     full, off = rows[0][3], rows[1][3]
-    coverage = [[v, f"{n_fine} of {n_all} ({100.0 * n_fine / max(1, n_all):.0f} %)", pos, ori, px]
-                for v, (n_fine, n_all, pos, ori, px) in extra.items()]
+    name, imu = labels(seq)
+    scale = seq.meta.get("converter", {}).get("object_scale", OBJECT_SCALE)
+    coverage = [[v, a.in_view, a.fine, a.scored, a.out_of_view, a.initialising, sum(a.lost.values()),
+                 "-" if a.worst_fine_frame is None else f"{a.worst_fine_px:.2f} (frame {a.worst_fine_frame})"]
+                for v, a in accounts.items()]
+    nothing = [f"- `{v}` scored nothing: {a.nothing_scored_reason()}" for v, a in accounts.items()
+               if a.nothing_scored_reason()]
+    placement = seq.meta.get("placement", {})
+    where = "" if not placement else (
+        f" ({placement.get('how', 'auto')}: centre at ({', '.join(f'{x:.2f}' for x in placement['centre_W'])}) m in "
+        f"the recording's world, seen whole in {100 * placement['visible_fraction']:.0f} % of the frames)")
+    bscm = (f"BSCM {'lowers' if full < off else 'does NOT lower'} the 2D error: {full:.2f} px with it, {off:.2f} px "
+            "without" if np.isfinite([full, off]).all() else "BSCM's effect is not measured here: `full` or `bscm_off` "
+            "scored nothing")
     return "\n".join([
-        "# Real IMU: EuRoC V1_02_medium with a Noisy oracle", "",
-        (f"{len(seq.frame_ids)} frames at {FPS:g} FPS ({len(seq.gt_T_CO)} with the object in view, scored), the real "
-        f"ADIS16448 IMU at 200 Hz, the default object scaled x{OBJECT_SCALE:g} where cam0 "
-        f"sees it ({seq.meta.get('placement', {})}); Noisy backend 3 mm / 0.3 deg per axis, seed {seed}; paper network "
-        "model and Pixel 2 slowdown."), "",
-        common.markdown_table(["variant", "position mm", "orientation deg", "2D projection px"], rows), "",
-        ("Frames scored above: in view and FINE. In-view frames with a FINE pose, and the error over all in-view "
-         "frames (TRACKING_LOST / WRONG_POSE poses included, which the tracker itself flags as unusable):"), "",
-        common.markdown_table(["variant", "FINE / in view", "all in view: mm", "deg", "px"], coverage), "",
-        (f"BSCM {'lowers' if full < off else 'does NOT lower'} the 2D error: {full:.2f} px with it, {off:.2f} px "
-        "without (`full` is the paper-faithful tracker; `filter` is the error-state Kalman filter, "
-        "`flextrack.experiments.common.FILTER`)."), "",
+        f"# Real IMU: {name} with a Noisy oracle", "",
+        (f"{len(seq.frame_ids)} frames at {fps:g} FPS ({len(seq.gt_T_CO)} with the object in view), the recording's "
+         f"IMU ({imu}, {seq.imu_noise.update_rate:g} Hz), the default "
+         f"object scaled x{scale:g} where the camera sees it{where}; Noisy backend "
+         f"3 mm / 0.3 deg per axis, seed {seed}; paper network model and Pixel 2 slowdown."), "",
+        common.markdown_table(["variant", "position mm", "orientation deg", "2D projection px", "jitter px", "NEES",
+                               "worst FINE px"], rows), "",
+        ("Frames scored above: in view and FINE (the paper's rule). What was and was not scored, and why (out of "
+         "view: the object's centre not in the image or behind the camera; initialising: before the tracker's "
+         "first pose; lost: in view but TRACKING_LOST / WRONG_POSE):"), "",
+        common.markdown_table(["variant", "in view", "FINE", "scored", "out of view", "initialising", "lost",
+                               "worst FINE px"], coverage), "",
+        *([*nothing, ""] if nothing else []),
+        (f"{bscm} (`full` is the paper-faithful tracker; `filter` is the error-state Kalman filter, "
+         "`flextrack.experiments.common.FILTER`)."), "",
         "The paper's Table 4 (its own five RealSense sequences, for scale):", "",
         common.markdown_table(["sequence", "position mm", "orientation deg", "2D projection px"], paper_rows), "",
         "![2D error over time](euroc.png)",

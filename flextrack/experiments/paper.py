@@ -30,3 +30,5 @@ TABLE4 = {"#1": (1.65, 1.54, 2.56), "#2": (2.06, 6.96, 2.93), "#3": (2.01, 8.17,
 
 # Section 4.1.4: frontend timing after the 2.46 stretch, ms.
 TIMING_MS = {"pim": 0.35, "prm": 0.86}
+
+EUROC_FPS = 52.0  # the frame rate of the paper's real sequences (Table 4), which `experiment euroc` uses by default

@@ -19,7 +19,7 @@ from client_sdk.slowdown import PIXEL2_FACTOR
 from flextrack.assets import default_config_path
 from flextrack.formats import sequence as sequence_io
 from flextrack.provenance import of_args
-from flextrack.runners import cli_checks, session
+from flextrack.runners import cli_checks, scoring, session
 from flextrack.runners.backends import ORACLE_BACKENDS as ORACLES
 from flextrack.runners.results import format_table
 
@@ -127,6 +127,7 @@ def run(args) -> int:
         seq = sequence_io.load(args.sequence)
         if args.fps:
             seq = session.at_fps(seq, args.fps)
+        seq = scoring.in_view_only(seq)  # frames with the object out of view are not scored
         spec = session.RunSpec(
             backend=args.backend, network=network_options(args.network, args.seed), slowdown=args.slowdown,
             backend_compute_ms=args.backend_ms, seed=args.seed, live=args.live, speed=args.speed,
@@ -144,17 +145,18 @@ def run(args) -> int:
         print("\nflextrack track: interrupted", file=sys.stderr)
         return 130
     name = f"{seq.name}_{args.backend}"
-    if record.requests and not record.responses:
-        print(f"flextrack track: the backend answered none of {record.requests} requests with a pose "
-              f"(is '{args.backend}' an estimator of that server, and does it know sequence '{seq.name}'?)",
-              file=sys.stderr)
-        return 1
+    accounting = scoring.account(record)
     record.write(args.out, name, provenance=of_args(args, command="flextrack track"))
-    if not args.no_plots:
+    if not args.no_plots and accounting.scored:
         session.write_plots(record, args.out, name)
     summary = record.summarize()
     print(format_table([(name, summary)]))
+    print(accounting.describe())
     if summary.time_offset_ms == summary.time_offset_ms:  # the filter estimated it
         print(f"camera-IMU time offset (t_imu - t_camera) estimated online: {summary.time_offset_ms:.1f} ms")
     print(f"wrote {args.out}/{name}_*")
+    reason = accounting.nothing_scored_reason()
+    if reason:
+        print(f"flextrack track: nothing scored: {reason}", file=sys.stderr)
+        return 1
     return 0

@@ -75,12 +75,16 @@ def pia_distance_m(camera: PinholeCamera, box_size_m: np.ndarray, area_divisor: 
 
 
 def place_object(T_WC: np.ndarray, camera: PinholeCamera, radius_m: float,
-                 max_distance_m: float = MAX_DISTANCE_M) -> Placement:
-    """The candidate point (on the optical axes of ~150 frames, at 5 depths) seen whole in the most frames."""
+                 max_distance_m: float = MAX_DISTANCE_M, distance_m: float | None = None,
+                 position_W: np.ndarray | None = None) -> Placement:
+    """The candidate point (on the optical axes of ~150 frames, at 5 depths, or at `distance_m` alone) seen
+    whole in the most frames; or `position_W` as given, with its visibility."""
     every = max(1, len(T_WC) // 150)
     origins, axes = T_WC[::every, :3, 3], T_WC[::every, :3, 2]
-    depths = np.linspace(MIN_DISTANCE_M, max_distance_m, 7)[1:-1]
+    depths = np.linspace(MIN_DISTANCE_M, max_distance_m, 7)[1:-1] if distance_m is None else np.array([distance_m])
     candidates = (origins[:, None] + depths[None, :, None] * axes[:, None]).reshape(-1, 3)
+    if position_W is not None:
+        candidates = np.asarray(position_W, float).reshape(1, 3)
     seen = visibility(candidates, T_WC, camera, radius_m, max_distance_m)
     score = seen.mean(axis=1)
     best = int(np.argmax(score))
@@ -91,9 +95,13 @@ def place_object(T_WC: np.ndarray, camera: PinholeCamera, radius_m: float,
 
 def convert_euroc(euroc_dir: str | Path, out_dir: str | Path, *, fps: float | None = None,
                   object_path: str | Path | None = None, object_id: str | None = None,
-                  max_distance_m: float = MAX_DISTANCE_M, object_scale: float = OBJECT_SCALE) -> Path:
+                  max_distance_m: float = MAX_DISTANCE_M, object_scale: float = OBJECT_SCALE,
+                  object_position: tuple[float, float, float] | None = None,
+                  object_distance_m: float | None = None) -> Path:
     """Write the sequence folder `out_dir` from a EuRoC folder holding imu0.csv, groundtruth.csv,
-    cam0_sensor.yaml and imu0_sensor.yaml (or the mav0/ layout: imu0/data.csv, ...)."""
+    cam0_sensor.yaml and imu0_sensor.yaml (or the mav0/ layout: imu0/data.csv, ...). The object goes where
+    `place_object` finds the cameras look most (at `object_distance_m` from them when given), or at
+    `object_position` (world, m) when given."""
     src = Path(euroc_dir)
     paths = _find_files(src)
     imu = euroc.read_imu(paths["imu"])
@@ -133,7 +141,11 @@ def convert_euroc(euroc_dir: str | Path, out_dir: str | Path, *, fps: float | No
         raise ValueError(f"the object (scale {object_scale:g}) is too small for the PIA in this camera beyond "
                          f"{pia_reach_m:.2f} m, below the {MIN_DISTANCE_M} m minimum: use an object scale of at "
                          f"least {object_scale * 1.5 * MIN_DISTANCE_M / pia_reach_m:.1f}")
-    placement = place_object(T_WC, camera, float(np.linalg.norm(vertices - centre_O, axis=1).max()), reach_m)
+    if object_distance_m is not None and not MIN_DISTANCE_M <= object_distance_m <= reach_m:
+        raise ValueError(f"the object distance must be within {MIN_DISTANCE_M}..{reach_m:.2f} m (where the PIA "
+                         f"still accepts the object at scale {object_scale:g}), got {object_distance_m:g}")
+    placement = place_object(T_WC, camera, float(np.linalg.norm(vertices - centre_O, axis=1).max()), reach_m,
+                             distance_m=object_distance_m, position_W=object_position)
     facing = np.median(T_WC[:, :3, 3], axis=0) - placement.centre_W  # turn the object's +x to the cameras
     R_WO = so3.exp(np.array([0.0, 0.0, np.arctan2(facing[1], facing[0])]))
     T_WO = se3.make(R_WO, placement.centre_W - R_WO @ centre_O)
@@ -144,17 +156,34 @@ def convert_euroc(euroc_dir: str | Path, out_dir: str | Path, *, fps: float | No
         gt_T_CO={int(i): T_CW[i] @ T_WO for i in ids}, camera=camera, T_BC=cam.T_BS, T_WO=T_WO,
         object_id=object_id, bop_obj_id=bop_obj_id, model_path=model, groundtruth=gt,
         meta={
-            "converter": {"source": str(src.resolve()), "fps": fps, "object": str(object_path or "default"),
+            "converter": {"source": str(src.resolve()), "source_name": _source_name(src),
+                          "imu": imu_label(paths["imu_yaml"]), "fps": fps, "object": str(object_path or "default"),
                           "object_scale": float(object_scale), "imu_lead_s": IMU_LEAD_S,
                           "max_distance_m": max_distance_m, "placement_distance_m": reach_m,
                           "groundtruth_backfilled_s": max(0.0, (int(gt.t_ns[0]) - first) * 1e-9)},
-            "placement": {"centre_W": placement.centre_W.tolist(), "visible_fraction": placement.visible_fraction,
+            "placement": {"how": "given" if object_position is not None else
+                          ("auto" if object_distance_m is None else f"auto at {object_distance_m:g} m"),
+                          "centre_W": placement.centre_W.tolist(), "visible_fraction": placement.visible_fraction,
                           "distance_m_min_median_max": list(placement.distance_m)},
             "times_ns": {"imu_start": int(imu.t_ns[0]), "end": int(last)},
         },
     )
     write_sequence(seq)
     return root
+
+
+def imu_label(sensor_yaml: Path) -> str:
+    """A name for the IMU from its Kalibr yaml: its `comment` (EuRoC: 'VI-Sensor IMU (ADIS16448)') or its rate."""
+    data = kalibr._load_yaml(sensor_yaml) or {}
+    comment = str(data.get("comment", "")).strip()
+    rate = data.get("rate_hz") or data.get("update_rate")
+    return comment or (f"IMU at {float(rate):g} Hz" if rate else "IMU")
+
+
+def _source_name(src: Path) -> str:
+    """The recording's name: its folder's, or the parent's for EuRoC's mav0/ folder."""
+    src = src.resolve()
+    return src.parent.name if src.name == "mav0" else src.name
 
 
 def install_scaled_model(source: Path, root: Path, bop_obj_id: int, scale: float) -> Path:
