@@ -29,7 +29,8 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from dataclasses import fields as dataclass_fields
 from pathlib import Path
 
 import cv2
@@ -41,7 +42,6 @@ from estimators.keypoint_voting import VotingConfig, vote_with_spread
 from estimators.objects import ObjectRegistry
 from estimators.pnp import PnpEstimator, covariance, pose_jacobian
 
-INPUT_SCALE = 2  # frame -> network input (area averaging)
 # The covariance (docs/estimators.md; the inflations fitted by `flextrack evaluate nees` on its tuning frames)
 KEYPOINT_FLOOR_PX = 0.3  # px added in quadrature to each voted keypoint's spread
 KEYPOINT_INFLATION = 1.70  # PnP's pose (refine = false) from the voted keypoints
@@ -49,7 +49,45 @@ REFINE_FLOOR_PX = 0.1  # least RMS contour residual the refinement's covariance 
 REFINE_EDGE_REF_PX = 0.35  # a typical RMS contour residual: where the edge-quality scaling is 1
 REFINE_EDGE_POWER = 4.0  # the variance grows as s^(2 + p) with the RMS contour residual s
 REFINE_INFLATION = 25.8  # the refined pose
-OUTPUT_STRIDE = 2  # network input -> output grid
+
+
+@dataclass(frozen=True)
+class PvnetOptions:
+    """The pvnet estimator's settings; a config file's `[estimators.params]` names these fields."""
+
+    min_mask_px: int = 12  # smallest mask component that counts as the object
+    zoom: bool = True  # a second pass on a crop scaled to the object
+    zoom_size: int = 128  # that crop's side, network input px
+    zoom_object_px: float = 64.0  # the object's box width in the crop
+    full_resolution_search: bool = True  # look again at full resolution for objects that look small
+    near_box_px: float = 50.0  # "small": a box under this many frame px
+    candidates: int = 3  # mask components tried
+    candidate_share: float = 0.25  # a component smaller than this share of the largest is not tried
+    min_confidence: float = 0.1  # no pose under this confidence
+    rotations: int = 4  # 1: the crop as it is; 4: also turned by 90, 180 and 270 degrees
+    turn_margin: float = 1.5  # a turned candidate must beat the upright one by this factor
+    hypotheses: int = 64  # RANSAC voting hypotheses per keypoint
+    cos_threshold: float = 0.99  # a pixel votes for a hypothesis within this cosine
+    ransac_px: float = 8.0  # PnP's RANSAC reprojection threshold
+    seed: int = 0
+    refine: bool = True  # refine the pose on the object's outline
+    min_outline_fit: float = 0.7  # with refine: no pose when less of its outline lies on edges
+    device: str = "auto"  # "cpu" to keep off CUDA
+    threads: int = 0  # onnxruntime intra-op threads (0: its default)
+    keypoint_floor_px: float = KEYPOINT_FLOOR_PX
+    keypoint_inflation: float = KEYPOINT_INFLATION
+    refine_floor_px: float = REFINE_FLOOR_PX
+    refine_inflation: float = REFINE_INFLATION
+    refine_edge_power: float = REFINE_EDGE_POWER
+
+
+def _model_scale(meta: dict, key: str, name: str, model_path: Path) -> int:
+    """INPUT_SCALE / OUTPUT_STRIDE as the training side wrote them into the model (export_onnx)."""
+    try:
+        return int(meta[key])
+    except (KeyError, ValueError):
+        raise ValueError(f"estimator '{name}': {model_path.name} has no integer '{key}' in its metadata "
+                         f"(export it with flextrack.training.export_onnx)") from None
 
 
 def _providers(device: str) -> list[str]:
@@ -84,16 +122,14 @@ class PvnetEstimator(Estimator):
     description = "PVNet-style network (mask + keypoint vector field, onnxruntime), RANSAC voting, OpenCV PnP"
 
     def __init__(self, objects: ObjectRegistry, model_path: str | Path, name: str = "pvnet", object_ids=(),
-                 min_mask_px: int = 12, zoom: bool = True, zoom_size: int = 128, zoom_object_px: float = 64.0,
-                 full_resolution_search: bool = True, near_box_px: float = 50.0, candidates: int = 3,
-                 candidate_share: float = 0.25, min_confidence: float = 0.1, rotations: int = 4, turn_margin: float = 1.5,
-                 hypotheses: int = 64, cos_threshold: float = 0.99, ransac_px: float = 8.0, seed: int = 0,
-                 refine: bool = True, min_outline_fit: float = 0.7, device: str = "auto", threads: int = 0,
-                 keypoint_floor_px: float = KEYPOINT_FLOOR_PX, keypoint_inflation: float = KEYPOINT_INFLATION,
-                 refine_floor_px: float = REFINE_FLOOR_PX, refine_inflation: float = REFINE_INFLATION,
-                 refine_edge_power: float = REFINE_EDGE_POWER):
+                 options: PvnetOptions | None = None, **params):
+        """`options`, with `params` (PvnetOptions' field names, as a config file gives them) over it."""
         import onnxruntime as ort
 
+        unknown = set(params) - {f.name for f in dataclass_fields(PvnetOptions)}
+        if unknown:
+            raise TypeError(f"estimator '{name}': unknown pvnet option(s) {sorted(unknown)}")
+        self.options = o = replace(options or PvnetOptions(), **params)
         ids = list(object_ids) or objects.ids()
         if len(ids) != 1:
             raise ValueError(f"estimator '{name}': a pvnet model serves exactly one object, got {ids}; "
@@ -103,11 +139,13 @@ class PvnetEstimator(Estimator):
         if not model_path.is_file():
             raise FileNotFoundError(f"estimator '{name}': ONNX model {model_path} not found "
                                     f"(train one with `flextrack train pvnet`)")
-        options = ort.SessionOptions()
-        if threads:
-            options.intra_op_num_threads = int(threads)
-        self.session = ort.InferenceSession(str(model_path), options, providers=_providers(device))
+        session_options = ort.SessionOptions()
+        if o.threads:
+            session_options.intra_op_num_threads = int(o.threads)
+        self.session = ort.InferenceSession(str(model_path), session_options, providers=_providers(o.device))
         meta = self.session.get_modelmeta().custom_metadata_map
+        self.input_scale = _model_scale(meta, "input_scale", name, model_path)  # frame -> network input (area)
+        self.output_stride = _model_scale(meta, "output_stride", name, model_path)  # network input -> output grid
         model_kp = np.asarray(json.loads(meta.get("keypoints_O", "[]")), dtype=float)
         object_kp = objects.get(ids[0]).keypoints
         if model_kp.shape != object_kp.shape or not np.allclose(model_kp, object_kp, atol=1e-4):
@@ -115,37 +153,33 @@ class PvnetEstimator(Estimator):
                              f"'{ids[0]}' has ({model_kp.shape[0]} vs {object_kp.shape[0]}, or different positions)")
         self.model_path = model_path
         self.num_keypoints = len(object_kp)
-        self.min_mask_px = int(min_mask_px)
-        self.zoom, self.zoom_size, self.zoom_object_px = bool(zoom), int(zoom_size), float(zoom_object_px)
-        self.full_resolution_search, self.near_box_px = bool(full_resolution_search), float(near_box_px)
-        self.candidates, self.candidate_share = int(candidates), float(candidate_share)
-        self.min_confidence = float(min_confidence)
-        if rotations not in (1, 4):
+        self.min_mask_px = int(o.min_mask_px)
+        self.zoom, self.zoom_size, self.zoom_object_px = bool(o.zoom), int(o.zoom_size), float(o.zoom_object_px)
+        self.full_resolution_search, self.near_box_px = bool(o.full_resolution_search), float(o.near_box_px)
+        self.candidates, self.candidate_share = int(o.candidates), float(o.candidate_share)
+        self.min_confidence = float(o.min_confidence)
+        if o.rotations not in (1, 4):
             raise ValueError(f"estimator '{name}': rotations must be 1 (the crop as it is) or 4 (also turned by 90, "
-                             f"180 and 270 degrees), got {rotations}")
-        self.rotations, self.turn_margin = int(rotations), float(turn_margin)
+                             f"180 and 270 degrees), got {o.rotations}")
+        self.rotations, self.turn_margin = int(o.rotations), float(o.turn_margin)
         if self.turn_margin < 1:
-            raise ValueError(f"estimator '{name}': turn_margin must be >= 1, got {turn_margin}")
-        self.voting = VotingConfig(hypotheses=int(hypotheses), cos_threshold=float(cos_threshold))
-        self.seed = int(seed)
-        self._pnp = PnpEstimator(objects, name=f"{name}.pnp", object_ids=ids, ransac_px=ransac_px)
+            raise ValueError(f"estimator '{name}': turn_margin must be >= 1, got {o.turn_margin}")
+        self.voting = VotingConfig(hypotheses=int(o.hypotheses), cos_threshold=float(o.cos_threshold))
+        self.seed = int(o.seed)
+        self._pnp = PnpEstimator(objects, name=f"{name}.pnp", object_ids=ids, ransac_px=o.ransac_px)
         obj = objects.get(ids[0])
-        self.refiner = ContourRefiner(obj.vertices, obj.faces, obj.keypoints) if refine else None
-        self.min_outline_fit = float(min_outline_fit)
+        self.refiner = ContourRefiner(obj.vertices, obj.faces, obj.keypoints) if o.refine else None
+        self.min_outline_fit = float(o.min_outline_fit)
         self._keypoints_O = obj.keypoints
-        if min(keypoint_floor_px, keypoint_inflation, refine_floor_px, refine_inflation) <= 0:
+        if min(o.keypoint_floor_px, o.keypoint_inflation, o.refine_floor_px, o.refine_inflation) <= 0:
             raise ValueError(f"estimator '{name}': the covariance's floors and inflations must be > 0")
-        self.keypoint_floor_px, self.keypoint_inflation = float(keypoint_floor_px), float(keypoint_inflation)
-        self.refine_floor_px, self.refine_inflation = float(refine_floor_px), float(refine_inflation)
-        self.refine_edge_power = float(refine_edge_power)
+        self.keypoint_floor_px, self.keypoint_inflation = float(o.keypoint_floor_px), float(o.keypoint_inflation)
+        self.refine_floor_px, self.refine_inflation = float(o.refine_floor_px), float(o.refine_inflation)
+        self.refine_edge_power = float(o.refine_edge_power)
 
     @classmethod
     def from_spec(cls, spec) -> PvnetEstimator:
-        spec.check_params({"min_mask_px", "zoom", "zoom_size", "zoom_object_px", "full_resolution_search",
-                           "near_box_px", "candidates", "candidate_share", "min_confidence", "rotations", "turn_margin",
-                           "hypotheses", "cos_threshold", "ransac_px", "seed", "refine", "min_outline_fit", "device",
-                           "threads", "keypoint_floor_px", "keypoint_inflation", "refine_floor_px", "refine_inflation",
-                           "refine_edge_power"})
+        spec.check_params({f.name for f in dataclass_fields(PvnetOptions)})
         if spec.model is None:
             raise ValueError(f"estimator '{spec.name}' (kind pvnet) needs `model = \"path/to/pvnet.onnx\"`")
         return cls(spec.objects, spec.model, spec.name, spec.object_ids, **spec.params)
@@ -218,7 +252,7 @@ class PvnetEstimator(Estimator):
 
     def _locate(self, outs: np.ndarray, factor: int) -> list[list]:
         """Per output, the candidate objects, largest first: (pixels (N, 2) and box in frame px, vectors (N, K, 2))."""
-        stride = factor * OUTPUT_STRIDE  # frame px per output cell
+        stride = factor * self.output_stride  # frame px per output cell
         shift = (stride - 1) / 2  # centre of an output cell, frame px
         found = []
         for out in outs:
@@ -238,10 +272,11 @@ class PvnetEstimator(Estimator):
         # Whole-frame search: the halved frame finds near objects; where its largest candidate is
         # missing or small (box side under `near_box_px` of the halved frame) the full-resolution
         # frame is searched too, where far objects have the sizes the network mostly saw.
-        halves = [cv2.resize(im, (w // INPUT_SCALE, h // INPUT_SCALE), interpolation=cv2.INTER_AREA) for im in images]
-        found = self._locate(self._run(halves), INPUT_SCALE)
+        scale = self.input_scale
+        halves = [cv2.resize(im, (w // scale, h // scale), interpolation=cv2.INTER_AREA) for im in images]
+        found = self._locate(self._run(halves), scale)
         side = lambda box: max(box[2] - box[0], box[3] - box[1])
-        small = [i for i, f in enumerate(found) if not f or side(f[0][2]) < self.near_box_px * INPUT_SCALE]
+        small = [i for i, f in enumerate(found) if not f or side(f[0][2]) < self.near_box_px * scale]
         if self.full_resolution_search and small:
             for i, f in zip(small, self._locate(self._run([images[i] for i in small]), 1)):
                 found[i] = f or found[i]
@@ -267,7 +302,7 @@ class PvnetEstimator(Estimator):
             masks = _components(out[0] > 0, 1, self.min_mask_px)
             if masks:
                 rows, cols, vec = self._field(out, masks[0])
-                pts, vec = _unturn(np.stack([OUTPUT_STRIDE * cols + 0.5, OUTPUT_STRIDE * rows + 0.5], axis=1),
+                pts, vec = _unturn(np.stack([self.output_stride * cols + 0.5, self.output_stride * rows + 0.5], axis=1),
                                    vec, t, self.zoom_size)
                 _, scale, off = crops[p]
                 zoomed[p].append(((pts - off) / scale, vec, t))

@@ -13,7 +13,7 @@ torch = pytest.importorskip("torch")
 from estimators.base import EstimateInput, InvalidInput, Status
 from estimators.contour_refine import ContourRefiner
 from estimators.objects import ObjectRegistry, load_object
-from estimators.pvnet import PvnetEstimator, _unturn
+from estimators.pvnet import PvnetEstimator, PvnetOptions, _unturn
 from flextrack import assets
 from flextrack.geometry import metrics, se3, so3
 from flextrack.geometry.camera import PinholeCamera
@@ -58,6 +58,24 @@ def test_bad_inputs_are_clear_errors(registry, blind_model):
         est.estimate(_input(np.zeros((480, 640, 3), np.uint8), camera=None))
     with pytest.raises(InvalidInput, match="too small"):
         est.estimate(_input(np.zeros((8, 8, 3), np.uint8)))
+
+
+def test_options_struct_and_config_names_and_the_models_own_scales(registry, blind_model, tmp_path):
+    est = PvnetEstimator(registry, blind_model, options=PvnetOptions(rotations=1, min_confidence=0.3), seed=5)
+    assert est.options == PvnetOptions(rotations=1, min_confidence=0.3, seed=5)  # keywords over the struct
+    assert (est.rotations, est.min_confidence, est.seed) == (1, 0.3, 5)
+    assert (est.input_scale, est.output_stride) == (2, 2)  # read back from the ONNX metadata export wrote
+    with pytest.raises(TypeError, match="unknown pvnet option"):
+        PvnetEstimator(registry, blind_model, rotation=1)
+    import onnx
+
+    model = onnx.load(str(blind_model))
+    kept = [p for p in model.metadata_props if p.key != "output_stride"]
+    del model.metadata_props[:]
+    model.metadata_props.extend(kept)
+    onnx.save(model, str(tmp_path / "no_stride.onnx"))
+    with pytest.raises(ValueError, match="output_stride"):
+        PvnetEstimator(registry, tmp_path / "no_stride.onnx")
 
 
 def test_model_for_other_keypoints_is_refused(registry, tmp_path):
