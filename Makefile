@@ -17,7 +17,7 @@ setup: $(STAMP)  ## create .venv with the backend, simulator, training and test 
 demo: $(STAMP)  ## start a backend, track a simulated sequence over gRPC, print the table, write plots
 	$(PY) -m flextrack demo --out out/demo
 
-test: lint test-deps  ## lint (ruff + import contracts), then the whole test suite (about 5 minutes on 2 cores)
+test: lint test-deps  ## lint (ruff + import contracts), then the whole test suite (about 7 minutes on 2 cores)
 	$(PY) -m pytest -q --durations=15
 
 # What tests need beyond Python: nginx for the two front-proxy tests. Installed when missing as root or in
