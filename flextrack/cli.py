@@ -39,6 +39,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def command_parser(name: str, module) -> argparse.ArgumentParser:
+    """`flextrack NAME`'s parser: the module's options, their true defaults and the command's examples."""
+    from flextrack.cli_help import DefaultsFormatter, finish
+
+    parser = argparse.ArgumentParser(prog=f"flextrack {name}", description=COMMANDS[name][1],
+                                     formatter_class=DefaultsFormatter)
+    module.add_arguments(parser)
+    return finish(parser, name)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
@@ -49,16 +59,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.parse_args(argv)  # --help exits 0; anything else is an argparse error (exit 2)
         return 2
     name, rest = argv[0], argv[1:]
-    module_name, help_text = COMMANDS[name]
+    module_name = COMMANDS[name][0]
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:
         print(f"flextrack {name}: cannot load {module_name} ({exc}); install the extra it needs, "
               f"e.g. pip install -e '.[dev]' (make setup)", file=sys.stderr)
         return 2
-    cmd_parser = argparse.ArgumentParser(prog=f"flextrack {name}", description=help_text,
-                                         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    module.add_arguments(cmd_parser)
+    cmd_parser = command_parser(name, module)
     return int(module.run(cmd_parser.parse_args(rest)) or 0)
 
 

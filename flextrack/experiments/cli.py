@@ -28,13 +28,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="ablation, timing, euroc: the seed")
     parser.add_argument("--duration", type=float, default=30.0, help="seconds of motion per simulated sequence")
     parser.add_argument("--fps", type=float, nargs="+",
-                        help=f"table2: frame rates among {list(paper.FPS)} (default: all four; with --backend 30 and "
-                        f"120); euroc: the one frame rate (default: {paper.EUROC_FPS:g}, the paper's real-data rate)")
+                        help=f"table2: frame rates among {list(paper.FPS)} (all four unless given; 30 and 120 with "
+                        f"--backend); euroc: the one frame rate (default: {paper.EUROC_FPS:g}, the paper's real-data rate)")
     parser.add_argument("--in-process", action="store_true", help="call the backend in-process instead of gRPC")
     parser.add_argument("--backend", default="oracles",
                         help="table2: 'oracles' (GT and Noisy, the paper's table) or an image estimator of --config "
-                        "(e.g. pvnet), run beside gt_oracle on rendered frames (default cells: translational and "
-                        "circular medium at 30 and 120 FPS)")
+                        "(e.g. pvnet), run beside gt_oracle on rendered frames (its cells unless given: translational "
+                        "and circular medium at 30 and 120 FPS)")
     parser.add_argument("--config", type=Path, help="table2 --backend: the service config (default "
                         "service/default_config.toml)")
     parser.add_argument("--backend-ms", type=float, default=145.0,

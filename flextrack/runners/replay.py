@@ -26,6 +26,7 @@ from client_sdk.network_model import NetworkOptions
 from client_sdk.slowdown import PIXEL2_FACTOR, FrontendCosts, Slowdown
 from flextrack.formats.sequence import Sequence
 from flextrack.runners.exchange import apply_answer, finish, frame_request, tracker_for
+from flextrack.runners.live import Progress
 from flextrack.runners.payload import stand_in_jpeg
 from flextrack.runners.results import TrackRecord
 
@@ -44,11 +45,13 @@ class ReplayOptions:
 
 def replay(seq: Sequence, backend, vertices_O: np.ndarray, tracker_options: TrackerOptions | None = None,
            options: ReplayOptions = ReplayOptions(), wrap: Callable | None = None,
-           frame_jpeg: Callable[[int], bytes] | None = None) -> TrackRecord:
+           frame_jpeg: Callable[[int], bytes] | None = None,
+           progress: Callable[[Progress], None] | None = None) -> TrackRecord:
     """Track `seq` with `backend` (see flextrack.runners.backends) and record every frame against ground truth.
 
     `wrap` may put a proxy around the tracker (the timing experiment measures its calls that way);
-    `frame_jpeg(frame_id)` gives the image a request carries (default: the 90 kB stand-in).
+    `frame_jpeg(frame_id)` gives the image a request carries (default: the 90 kB stand-in); `progress` is
+    called after every frame (it decides itself how often to show anything).
     """
     tracker = tracker_for(seq, vertices_O, tracker_options)
     if wrap is not None:
@@ -66,6 +69,7 @@ def replay(seq: Sequence, backend, vertices_O: np.ndarray, tracker_options: Trac
         events.append((int(t), _FRAME, i, int(fid)))
     heapq.heapify(events)
     n = len(events)
+    t_first, t_last = (int(seq.frame_times_ns[0]), int(seq.frame_times_ns[-1])) if len(seq.frame_times_ns) else (0, 0)
 
     while events:
         t_ns, kind, i, payload = heapq.heappop(events)
@@ -74,6 +78,8 @@ def replay(seq: Sequence, backend, vertices_O: np.ndarray, tracker_options: Trac
         elif kind == _FRAME:
             result = tracker.add_frame(t_ns)
             record.add(payload, t_ns, result.status.name, result.T_CO, seq.gt_T_CO.get(payload), result.covariance)
+            if progress is not None:
+                progress(Progress((t_ns - t_first) * 1e-9, (t_last - t_first) * 1e-9, record, result.status.name, True))
             if result.request is not None:
                 request = frame_request(seq, tracker, payload, result.request.frame_t_ns,
                                         image if frame_jpeg is None else frame_jpeg(payload),

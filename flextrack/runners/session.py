@@ -106,7 +106,7 @@ def track(seq: Sequence, tracker_options: TrackerOptions, spec: RunSpec,
             stack.callback(backend.close)
         options = ReplayOptions(network=spec.network, slowdown=spec.slowdown,
                                 backend_compute_ms=spec.backend_compute_ms, estimator=spec.backend)
-        return replay(seq, backend, vertices, tracker_options, options, frame_jpeg=frame_jpeg)
+        return replay(seq, backend, vertices, tracker_options, options, frame_jpeg=frame_jpeg, progress=progress)
 
 
 def print_progress(p: Progress, stream=sys.stderr) -> None:

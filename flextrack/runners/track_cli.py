@@ -21,6 +21,7 @@ from flextrack.formats import sequence as sequence_io
 from flextrack.provenance import of_args
 from flextrack.runners import cli_checks, scoring, session
 from flextrack.runners.backends import ORACLE_BACKENDS as ORACLES
+from flextrack.runners.progress import ProgressPrinter
 from flextrack.runners.results import format_table
 
 
@@ -56,7 +57,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="network and Noisy-backend seed")
     parser.add_argument("--frames", action="store_true", help="send the rendered frames (rendered on demand into the "
                         "folder's rgb/); on by default for estimators other than the gt/noisy oracles")
-    parser.add_argument("--no-plots", action="store_true")
+    parser.add_argument("--no-plots", action="store_true", help="skip the error and trajectory plots")
+    parser.add_argument("--progress-every", type=float, default=5.0, metavar="S",
+                        help="progress on stderr: a live line on a terminal, else a line every S seconds")
 
 
 def network_options(kind: str, seed: int) -> NetworkOptions:
@@ -133,7 +136,7 @@ def run(args) -> int:
             backend_compute_ms=args.backend_ms, seed=args.seed, live=args.live, speed=args.speed,
             in_process=args.in_process, config=args.config, server=args.server,
             frames=args.frames or args.backend not in ORACLES)
-        progress = session.print_progress if args.live and sys.stderr.isatty() else None
+        progress = ProgressPrinter(sys.stderr, every_s=args.progress_every)
         record = session.track(seq, tracker_options(args), spec, progress=progress)
     except (FileNotFoundError, ValueError, ConnectionError, RuntimeError) as exc:
         print(f"flextrack track: {exc}", file=sys.stderr)
