@@ -6,6 +6,7 @@ import pytest
 from estimators.base import EstimateInput, Status, UnknownObject, UnknownSequence
 from estimators.gt_oracle import GtOracleEstimator
 from estimators.registry import EstimatorRegistry
+from flextrack import wire
 from flextrack.formats import sequence as sequence_io
 from flextrack.geometry import se3, so3
 from flextrack.geometry.camera import PinholeCamera
@@ -77,7 +78,7 @@ def test_noise_has_the_configured_std_per_axis_over_2000_requests(seq):
     dt, dr = [], []
     for k, t_ns in enumerate(times):
         p = service.estimate(pb.EstimateRequest(frame_id=k, capture_time_ns=int(t_ns), estimator="noisy")).pose
-        T = se3.from_quat_translation(np.array([p.qw, p.qx, p.qy, p.qz]), np.array([p.tx, p.ty, p.tz]))
+        T = wire.pose_from_pb(p)
         T_gt = ask(exact, t_ns).T_CO
         dt.append(T[:3, 3] - T_gt[:3, 3])
         dr.append(so3.log(T[:3, :3] @ T_gt[:3, :3].T))

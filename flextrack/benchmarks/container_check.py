@@ -45,7 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _estimate_matches_ground_truth(address: str) -> tuple[bool, str]:
     """One oracle request from the host; the pose must be the toy sequence's ground truth."""
-    from flextrack.geometry import se3
+    from flextrack import wire
     from flextrack.testing.toy_sequence import write_orbit_sequence
     from flextrack.v1 import pose_estimation_pb2 as pb
     from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
@@ -59,8 +59,7 @@ def _estimate_matches_ground_truth(address: str) -> tuple[bool, str]:
             timeout=10)
     if reply.status != pb.EstimateResponse.OK:
         return False, f"status {pb.EstimateResponse.Status.Name(reply.status)}: {reply.message}"
-    p = reply.pose
-    T = se3.from_quat_translation(np.array([p.qw, p.qx, p.qy, p.qz]), np.array([p.tx, p.ty, p.tz]))
+    T = wire.pose_from_pb(reply.pose)
     error_m = float(np.linalg.norm(T[:3, 3] - seq.gt_T_CO[frame][:3, 3]))
     return error_m < 1e-6, f"OK from {reply.estimator}, translation error {error_m:.1e} m"
 
