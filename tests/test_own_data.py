@@ -4,6 +4,7 @@ say what they scored and why not, take the same tracker options, key their cache
 
 from __future__ import annotations
 
+import json
 import shutil
 
 import numpy as np
@@ -70,6 +71,8 @@ def test_track_scores_only_frames_in_view_and_says_how_many_it_skipped(sequence,
     assert main(["track", str(sequence), "--backend", "noisy", "--no-plots", "--out", str(tmp_path)]) == 0
     printed = capsys.readouterr().out
     assert f"not scored: {out_of_view} out of view" in printed and "worst FINE frame" in printed
+    accounting = json.loads((tmp_path / f"{sequence.name}_noisy_summary.json").read_text())["accounting"]
+    assert accounting["out_of_view"] == out_of_view and accounting["scored"] > 0
 
 
 def test_track_that_scores_nothing_exits_non_zero_with_the_reason(sequence, tmp_path, capsys):

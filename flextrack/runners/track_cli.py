@@ -8,8 +8,9 @@ sleeping latency interceptor instead, and `--in-process` skips gRPC in the repla
 from __future__ import annotations
 
 import argparse
+import json
 import sys
-from dataclasses import fields, replace
+from dataclasses import asdict, fields, replace
 from pathlib import Path
 
 from client_sdk import FilterOptions, TrackerOptions
@@ -150,6 +151,9 @@ def run(args) -> int:
     name = f"{seq.name}_{args.backend}"
     accounting = scoring.account(record)
     record.write(args.out, name, provenance=of_args(args, command="flextrack track"))
+    summary_file = args.out / f"{name}_summary.json"  # what was scored, and why the rest was not
+    summary_file.write_text(json.dumps(json.loads(summary_file.read_text()) | {"accounting": asdict(accounting)},
+                                       indent=2) + "\n")
     if not args.no_plots and accounting.scored:
         session.write_plots(record, args.out, name)
     summary = record.summarize()
