@@ -31,6 +31,7 @@ def test_evaluation_scores_every_frame_and_writes_its_results(tmp_path):
     summary = evaluate(SHIPPED, assets.default_object_model(), frames, tmp_path, sheet=3, rotations=4)
     saved = json.loads((tmp_path / "results.json").read_text())
     assert saved["rotations"] == 4 and len(saved["frames"]) == 3
+    assert saved["provenance"]["options"]["rotations"] == 4 and {"commit", "dirty", "host", "date"} <= set(saved["provenance"])
     assert summary["rendered"]["frames"] == 3 and 0.0 <= summary["rendered"]["proj_below_5px"] <= 1.0
     assert (tmp_path / "poses.jpg").stat().st_size > 0
 

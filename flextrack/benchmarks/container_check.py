@@ -24,6 +24,7 @@ import grpc
 import numpy as np
 
 from flextrack.loadtest import servers
+from flextrack.provenance import provenance
 
 REPO = Path(__file__).resolve().parents[2]
 TOOL = REPO.parent / "shared" / "tools" / "container-check"
@@ -104,9 +105,12 @@ def run(args: argparse.Namespace) -> int:
     print(f"container check {'PASSED' if passed else 'FAILED'} (log: {args.log})")
     if args.record:
         when = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(started))
+        prov = provenance(command="flextrack bench container")
+        where = (f"commit {(prov['commit'] or 'unknown')[:10]}{' (uncommitted changes)' if prov['dirty'] else ''}, "
+                 f"host {prov['host']}")
         args.record.write_text(
             "# Container check: last result\n\nWritten by `flextrack bench container --record docs/container_check.md`"
             " (flextrack/benchmarks/container_check.py): builds the Dockerfile with `../shared/tools/container-check build` "
             "(podman, chroot isolation, local Debian bookworm base) and runs `flextrack serve` in the image.\n\n"
-            f"Run: {when}, result: **{'PASS' if passed else 'FAIL'}**\n\n" + "\n".join(lines) + "\n")
+            f"Run: {when}, {where}, result: **{'PASS' if passed else 'FAIL'}**\n\n" + "\n".join(lines) + "\n")
     return 0 if passed else 1

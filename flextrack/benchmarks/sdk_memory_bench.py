@@ -13,12 +13,15 @@ from __future__ import annotations
 import argparse
 import ctypes
 import gc
+import json
 import queue
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from flextrack.provenance import of_args
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -81,6 +84,8 @@ def run(args: argparse.Namespace) -> int:
         keys = list(samples[0])
         args.csv.write_text(",".join(keys) + "\n" + "".join(",".join(str(s[k]) for k in keys) + "\n"
                                                           for s in samples))
+        args.csv.with_suffix(".json").write_text(json.dumps({  # the CSV's provenance, beside it
+            "provenance": of_args(args, command="flextrack bench sdk-memory"), "files": [args.csv.name]}, indent=1))
     return 0
 
 

@@ -28,6 +28,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from flextrack.provenance import of_args
+from flextrack.provenance import provenance as flextrack_provenance
+
 PROJ_PX = 5.0
 ADD_FRACTION = 0.1
 
@@ -166,9 +169,9 @@ def summarise(rows: list[dict]) -> dict:
 
 
 def evaluate(model: Path, object_path: Path, frames, out: Path, zoom: bool = True, sheet: int = 20,
-             rotations: int = 4, refine: bool = True, jpeg: str | None = None) -> dict:
-    """Scores `frames` with the pvnet estimator; writes results.json and the pose pictures. `jpeg`: how
-    the frames were encoded first (e.g. "90/444"), recorded with the results."""
+             rotations: int = 4, refine: bool = True, jpeg: str | None = None, provenance: dict | None = None) -> dict:
+    """Scores `frames` with the pvnet estimator; writes results.json (with `provenance`, by default these
+    arguments' own) and the pose pictures. `jpeg`: how the frames were encoded first (e.g. "90/444")."""
     from estimators.base import EstimateInput, Status
     from estimators.objects import ObjectRegistry, load_object
     from estimators.pvnet import PvnetEstimator
@@ -194,6 +197,9 @@ def evaluate(model: Path, object_path: Path, frames, out: Path, zoom: bool = Tru
     summary = summarise(rows)
     (out / "results.json").write_text(json.dumps({"model": str(model), "object": str(object_path), "zoom": zoom,
                                                   "rotations": rotations, "refine": refine, "jpeg": jpeg, "summary": summary,
+                                                  "provenance": provenance or flextrack_provenance(
+                                                      model=str(model), object=str(object_path), zoom=zoom,
+                                                      rotations=rotations, refine=refine, jpeg=jpeg),
                                                   "frames": rows}, indent=1))
     if drawings:
         cv2.imwrite(str(out / "poses.jpg"), contact_sheet(drawings), [cv2.IMWRITE_JPEG_QUALITY, 85])
@@ -217,7 +223,8 @@ def run(args) -> int:
             frames = as_sent(frames, args.jpeg, args.jpeg_chroma)
         summary = evaluate(args.model, object_path, frames, args.out, zoom=not args.no_zoom, sheet=args.sheet,
                            rotations=args.rotations, refine=not args.no_refine,
-                           jpeg=None if args.jpeg is None else f"{args.jpeg}/{args.jpeg_chroma}")
+                           jpeg=None if args.jpeg is None else f"{args.jpeg}/{args.jpeg_chroma}",
+                           provenance=of_args(args, command="flextrack train pvnet-eval"))
     except (FileNotFoundError, ValueError) as exc:
         print(f"evaluate: {exc}", file=sys.stderr)
         return 2
