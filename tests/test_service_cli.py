@@ -30,7 +30,7 @@ def test_serve_answers_then_stops_gracefully_on_sigterm(tmp_path):
         assert cli.check(address) == 0
         with grpc.insecure_channel(address) as channel:
             reply = pb_grpc.PoseEstimationStub(channel).Estimate(
-                pb.EstimateRequest(capture_time_ns=int(seq.frame_times_ns[2])), timeout=5)
+                pb.EstimateRequest(capture_time_ns=int(seq.frame_times_ns[2])), timeout=30)
         assert reply.status == pb.EstimateResponse.OK
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=20) == 0
@@ -92,7 +92,7 @@ def _health(address: str) -> int:
 
     with grpc.insecure_channel(address) as channel:
         return health_pb2_grpc.HealthStub(channel).Check(
-            health_pb2.HealthCheckRequest(service="flextrack.v1.PoseEstimation"), timeout=5).status
+            health_pb2.HealthCheckRequest(service="flextrack.v1.PoseEstimation"), timeout=30).status
 
 
 def test_sigterm_drains_not_serving_while_still_answering_then_a_second_signal_stops(tmp_path):
@@ -108,7 +108,7 @@ def test_sigterm_drains_not_serving_while_still_answering_then_a_second_signal_s
         assert _health(address) == health_pb2.HealthCheckResponse.NOT_SERVING  # the probe fails first...
         with grpc.insecure_channel(address) as channel:  # ...while calls are still served
             reply = pb_grpc.PoseEstimationStub(channel).Estimate(
-                pb.EstimateRequest(capture_time_ns=int(seq.frame_times_ns[2])), timeout=5)
+                pb.EstimateRequest(capture_time_ns=int(seq.frame_times_ns[2])), timeout=30)
         assert reply.status == pb.EstimateResponse.OK
         assert proc.poll() is None
         proc.send_signal(signal.SIGTERM)  # a second signal ends the 120 s drain

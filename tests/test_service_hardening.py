@@ -258,11 +258,11 @@ def test_metrics_listen_on_the_configured_address_and_serve_only_metrics():
     with BackgroundServer(EstimatorRegistry([ImageEstimator()]), grace_s=0.0, hardening=hardening) as srv:
         http = srv.running.metrics_http
         assert http.server_address == ("127.0.0.1", port)
-        page = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode()
+        page = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=30).read().decode()
         assert "flextrack_streams" in page
         for path in ("/", "/anything", "/metrics/../x"):
             with pytest.raises(urllib.error.HTTPError) as err:
-                urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=5)
+                urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=30)
             assert err.value.code == 404
 
 
@@ -301,9 +301,9 @@ def test_metrics_auth_takes_the_servers_token_and_tls(tmp_path):
         for header in (None, "Bearer wrong", "metrics-token"):
             request = urllib.request.Request(url, headers={"Authorization": header} if header else {})
             with pytest.raises(urllib.error.HTTPError) as err:
-                urllib.request.urlopen(request, timeout=5, context=context)
+                urllib.request.urlopen(request, timeout=30, context=context)
             assert err.value.code == 401
         request = urllib.request.Request(url, headers={"Authorization": "Bearer metrics-token"})
-        assert b"flextrack_streams" in urllib.request.urlopen(request, timeout=5, context=context).read()
+        assert b"flextrack_streams" in urllib.request.urlopen(request, timeout=30, context=context).read()
         with pytest.raises(OSError):  # plain HTTP is not served (reset or refused)
-            urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5)
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=30)
