@@ -95,6 +95,7 @@ def test_experiment_euroc_on_own_data(recording, tmp_path, capsys):
     assert "`full` scored nothing: the tracker never initialised" in report  # no still window for the paper's
     assert "| preset filter filter.gate_chi2=30 |" in report  # the same tracker options as track's
     assert "at 30 FPS" in report
+    assert list((tmp_path / "sequences").glob("*/plots/trajectory.png"))  # the placement, drawn
     # the cache: the same data and options reuse the conversion; another recording in the same OUT does not
     assert main(argv) == 0
     assert len(list((tmp_path / "sequences").iterdir())) == 1

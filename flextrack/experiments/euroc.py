@@ -89,6 +89,10 @@ def converted(out: Path, data: Path, fps: float, object_scale: float, object_dis
     if not (root / "rig.yaml").is_file():
         convert_euroc(data, root, fps=fps, object_scale=object_scale, object_distance_m=object_distance_m,
                       object_position=object_position)
+    if not (root / "plots" / "trajectory.png").is_file():  # the camera path and the object's place, drawn
+        from flextrack.simulator.plots import plot_sequence
+
+        plot_sequence(root)
     return root
 
 
@@ -155,5 +159,6 @@ def report(rows: list[list], seq, seed: int, accounts: dict, fps: float) -> str:
          "`flextrack.experiments.common.FILTER`)."), "",
         "The paper's Table 4 (its own five RealSense sequences, for scale):", "",
         common.markdown_table(["sequence", "position mm", "orientation deg", "2D projection px"], paper_rows), "",
-        "![2D error over time](euroc.png)",
+        "![2D error over time](euroc.png)", "",
+        f"![where the object was placed](sequences/{seq.root.name}/plots/trajectory.png)",
     ]) + "\n"

@@ -46,15 +46,16 @@ def plot_trajectory(seq: Sequence, path: Path) -> Path:
         ax.grid(alpha=0.3)
     fig.colorbar(sc, ax=axes, label="time [s]")
     axes[0].legend(loc="upper right")
-    title = f"{seq.name}: camera trajectory (arrows: viewing direction, 1 s apart)"
     placement = seq.meta.get("placement")
-    if placement:  # a converted recording: where the virtual object went, and how often it is seen
+    if placement:  # a converted recording: where the virtual object went, and how often it is seen whole
         centre = placement["centre_W"]
-        title += (f"\nobject ({placement.get('how', 'auto')}) at ({centre[0]:.2f}, {centre[1]:.2f}, {centre[2]:.2f}) m, "
-                  f"seen whole in {100 * placement['visible_fraction']:.0f} % of frames")
+        label = (f"object centre ({placement.get('how', 'auto')}): ({centre[0]:.2f}, {centre[1]:.2f}, "
+                 f"{centre[2]:.2f}) m, seen whole in {100 * placement['visible_fraction']:.0f} % of frames")
         for ax, (i, j) in zip(axes, ((0, 1), (0, 2))):
-            ax.scatter([centre[i]], [centre[j]], marker="*", s=200, c="tab:red", edgecolors="k", zorder=5)
-    fig.suptitle(title)
+            ax.scatter([centre[i]], [centre[j]], marker="*", s=200, c="tab:red", edgecolors="k", zorder=5,
+                       label=label)
+        axes[0].legend(loc="upper right", fontsize=8)
+    fig.suptitle(f"{seq.name}: camera trajectory (arrows: viewing direction, 1 s apart)")
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
