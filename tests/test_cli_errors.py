@@ -127,3 +127,16 @@ def test_serve_negative_port_is_refused(capsys):
 def test_flextrack_alone_prints_help_and_exits_2():
     done = subprocess.run([sys.executable, "-m", "flextrack"], check=False, capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and "usage: flextrack" in done.stderr and "Traceback" not in done.stderr
+
+
+@pytest.mark.parametrize("argv, says", [(["table2", "--fps", "45"], "choose among"),
+                                        (["table2", "--set", "px_error=15"], "apply to euroc"),
+                                        (["euroc", "--fps", "30", "60"], "one frame rate")])
+def test_experiment_options_that_cannot_apply_are_refused(argv, says, tmp_path, capsys):
+    assert main(["experiment", *argv, "--out", str(tmp_path)]) == 2
+    assert says in one_line(capsys)
+
+
+def test_experiment_euroc_bad_set_is_one_line(tmp_path, capsys):
+    assert main(["experiment", "euroc", "--set", "nonsense=1", "--out", str(tmp_path)]) == 2
+    assert "--set 'nonsense=1'" in one_line(capsys)
