@@ -70,6 +70,13 @@ def run(args: argparse.Namespace) -> int:
     if not args.config.is_file():
         print(f"flextrack serve: config file {args.config} not found", file=sys.stderr)
         return 2
+    try:  # a config that is not TOML at all: one line now, not a log record after the server started
+        import tomllib
+
+        tomllib.loads(args.config.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        print(f"flextrack serve: {args.config}: not valid TOML ({exc})", file=sys.stderr)
+        return 2
     from service.hardening import Hardening
 
     try:

@@ -140,3 +140,17 @@ def test_experiment_options_that_cannot_apply_are_refused(argv, says, tmp_path, 
 def test_experiment_euroc_bad_set_is_one_line(tmp_path, capsys):
     assert main(["experiment", "euroc", "--set", "nonsense=1", "--out", str(tmp_path)]) == 2
     assert "--set 'nonsense=1'" in one_line(capsys)
+
+
+def test_track_bad_fps_and_missing_config(seq, tmp_path, capsys):
+    assert main(["track", str(seq.root), "--fps", "0", "--out", str(tmp_path / "o")]) == 2
+    assert "--fps must be > 0" in one_line(capsys)
+    assert main(["track", str(seq.root), "--config", str(tmp_path / "nope.toml"), "--out", str(tmp_path / "o")]) == 2
+    assert "no such file" in one_line(capsys)
+
+
+def test_serve_config_that_is_not_toml(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("not [valid toml\n")
+    assert main(["serve", "--config", str(bad), "--port", "0"]) == 2
+    assert "not valid TOML" in one_line(capsys)

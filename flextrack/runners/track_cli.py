@@ -110,6 +110,10 @@ def argument_problem(args) -> str | None:
         return "--speed plays a --live run faster; add --live, or drop --speed (a replay runs in virtual time)"
     if not args.speed > 0:
         return f"--speed must be > 0, got {args.speed}"
+    if args.fps is not None and not args.fps > 0:
+        return f"--fps must be > 0, got {args.fps:g}"
+    if args.config is not None and not args.config.is_file():
+        return f"--config {args.config}: no such file (the default config is used when --config is left out)"
     if args.server and args.config:
         return "--config configures the embedded server; with --server the running server's own config is used"
     return cli_checks.out_folder_problem(args.out)
