@@ -94,7 +94,7 @@ def test_table2_with_the_pvnet_backend_renders_frames_and_reports_beside_the_ora
     csv_rows = _csv(out / "table2_pvnet.csv")
     assert list(csv_rows[0]) == table2_vision.HEADER and len(csv_rows) == 2
     text = (out / "table2_pvnet.md").read_text()
-    assert "| pvnet | 30 |" in text and "goal 5" in text
+    assert "| pvnet | 30 |" in text and "goal 1.5" in text
 
 
 def test_table2_with_an_unknown_backend_says_what_the_config_serves(tmp_path, capsys):
