@@ -83,6 +83,8 @@ def run(args) -> int:
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
+    seed_list = list(range(args.seeds)) if args.experiment == "table2" else [args.seed]
+    record = of_args(args, command="flextrack experiment " + args.experiment, seed_list=seed_list)  # at the start
     fps = tuple(int(f) for f in args.fps) if args.fps and args.experiment == "table2" else None
     try:
         if args.experiment == "table2" and args.backend != "oracles":
@@ -110,9 +112,8 @@ def run(args) -> int:
     stem = args.experiment if args.experiment != "table2" or args.backend == "oracles" else f"table2_{args.backend}"
     if args.experiment != "filter":  # filter writes filter.json itself, rows included
         provenance_file = args.out / f"{stem}.json"
-        seed_list = list(range(args.seeds)) if args.experiment == "table2" else [args.seed]
-        provenance_file.write_text(json.dumps({"provenance": of_args(args, command="flextrack experiment "
-                                                                     + args.experiment, seed_list=seed_list),
+        record["wall_s"] = round(time.perf_counter() - started, 1)
+        provenance_file.write_text(json.dumps({"provenance": record,
                                                "files": sorted(p.name for p in args.out.glob(f"{stem}*.*")
                                                                if p != provenance_file)}, indent=1) + "\n")
     report = args.out / f"{stem}.md"
