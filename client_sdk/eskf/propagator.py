@@ -33,6 +33,7 @@ _PHI_INDEX = np.array(
     + _flat((6 + r, c) for r in range(3) for c in range(3))  # v-theta
     + _flat((6 + r, 12 + c) for r in range(3) for c in range(3))  # v-ba
     + _flat((6 + k, 15 + k) for k in range(3)))  # v-g
+_Q_EVERY = 20  # samples between updates of Q from the in-use noise estimate
 _Q_INDEX = np.array(_flat((k, k) for k in (0, 1, 2, 6, 7, 8, 9, 10, 11, 12, 13, 14)))
 
 
@@ -48,10 +49,12 @@ class CovariancePropagator:
         self._alpha = 1.0 / max(options.noise_window_samples, 1)
         self._n2 = [0.0, 0.0]  # running estimate of the squared white-noise density, gyro and accel
         self._last: tuple = (None, None)  # the two samples before the next
+        self._seen = 0
         self._phi = _IDENTITY.copy()
         self._set_q(*self._densities)
 
     def _set_q(self, gyro_density: float, accel_density: float) -> None:
+        self._q_dt = (0.0, None)  # Q for the last dt, recomputed when either changes
         self._q_density = np.array([gyro_density ** 2] * 3 + [accel_density ** 2] * 3 + [self._walks[0] ** 2] * 3
                                    + [self._walks[1] ** 2] * 3)
 
@@ -69,12 +72,13 @@ class CovariancePropagator:
         dt = (sample[0] - s0[0]) * NS * 0.5
         if dt <= 0:
             return
-        a = self._alpha
-        for k, off in ((0, 1), (1, 4)):
-            d2 = sum((sample[off + i] - 2.0 * s1[off + i] + s0[off + i]) ** 2 for i in range(3)) / 3.0
-            self._n2[k] += a * (d2 * dt / 6.0 - self._n2[k])  # -> n^2
-        g, acc = (max(self._densities[k], self._n2[k] ** 0.5) for k in (0, 1))
-        self._set_q(g, acc)
+        a, n2 = self._alpha, self._n2
+        d = [sample[i] - 2.0 * s1[i] + s0[i] for i in range(1, 7)]
+        n2[0] += a * ((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) * dt / 18.0 - n2[0])  # -> n^2 (mean of 3 axes / 6)
+        n2[1] += a * ((d[3] * d[3] + d[4] * d[4] + d[5] * d[5]) * dt / 18.0 - n2[1])
+        self._seen += 1
+        if self._seen % _Q_EVERY == 0:  # Q follows the estimate ten times a second, not every sample
+            self._set_q(max(self._densities[0], n2[0] ** 0.5), max(self._densities[1], n2[1] ** 0.5))
 
     @property
     def densities(self) -> tuple[float, float]:
@@ -105,5 +109,7 @@ class CovariancePropagator:
         a = (0.5 * (s0[4] + s1[4]) - c[3], 0.5 * (s0[5] + s1[5]) - c[4], 0.5 * (s0[6] + s1[6]) - c[5])
         phi = self.transition(x, dt, w, a)
         out = phi @ cov @ phi.T
-        out.flat[_Q_INDEX] += self._q_density * dt
+        if self._q_dt[0] != dt:
+            self._q_dt = (dt, self._q_density * dt)
+        out.flat[_Q_INDEX] += self._q_dt[1]
         return out
