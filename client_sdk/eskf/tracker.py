@@ -43,26 +43,11 @@ from client_sdk.propagation import step_midpoint
 from client_sdk.refinement import ResponseOutcome
 from client_sdk.state import TrackerState
 from client_sdk.tracker_base import FrameResult, TrackerBase, as_int, check_rigid, imu_sample
+from flextrack import wire
 from flextrack.geometry import so3
 from flextrack.geometry.camera import PinholeCamera
 
 _DEG = np.pi / 180.0
-
-
-def check_covariance(cov, name: str = "covariance") -> np.ndarray:
-    """6x6, finite, symmetric positive definite (ValueError otherwise); numpy only, as the SDK is."""
-    c = np.asarray(cov, dtype=float)
-    if c.shape != (6, 6):
-        raise ValueError(f"{name} must be 6x6, got shape {c.shape}")
-    if not np.all(np.isfinite(c)):
-        raise ValueError(f"{name} must be finite")
-    if np.max(np.abs(c - c.T)) > 1e-9 * max(float(np.max(np.abs(c))), 1e-300):
-        raise ValueError(f"{name} must be symmetric")
-    try:
-        np.linalg.cholesky(c)
-    except np.linalg.LinAlgError:
-        raise ValueError(f"{name} must be positive definite") from None
-    return 0.5 * (c + c.T)
 
 
 class FilterTracker(TrackerBase):
@@ -326,7 +311,7 @@ class FilterTracker(TrackerBase):
         usable = ok and T_CO is not None
         if usable:
             T = np.array(check_rigid(T_CO, "T_CO")).reshape(4, 4)
-            sigma = None if covariance is None else check_covariance(covariance, "covariance")
+            sigma = None if covariance is None else wire.check_covariance(covariance, "covariance")
         self._book.in_flight = None
         if not usable:
             return self._outcome(ResponseOutcome.REJECTED, "backend found no pose; asking again")
