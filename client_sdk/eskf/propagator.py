@@ -8,7 +8,7 @@ Continuous-time error dynamics, with w = w_m - b_g and a = a_m - b_a (body frame
 
 discretised to first order, Phi = I + A dt, Q = diag(sigma^2 dt) with Kalibr's densities. The 36
 non-trivial entries of Phi are written with one `np.put`: the whole step costs a few microseconds,
-two 18x18 products included.
+two 19x19 products included.
 """
 
 from __future__ import annotations

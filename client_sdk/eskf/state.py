@@ -3,7 +3,7 @@
 Nominal, as in `client_sdk.state`: `x` = (R_OB row-major 9, p_OB 3, v_OB 3) floats, `c` = (b_g 3,
 b_a 3, g_O 3) floats, and the camera-IMU time offset `td` (s; t_imu = t_camera + td).
 
-Error state (N = 18), in this order:
+Error state (N = 19), in this order:
 
     d_theta 0:3   body-frame rotation error:      R_OB_true = R_OB Exp(d_theta)
     d_p     3:6   position error in O:            p_true = p + d_p

@@ -8,7 +8,7 @@
 
 What differs from the paper's PRM (docs/tracker.md has the equations):
 
-- Every IMU sample propagates the state and its 18x18 error covariance (`eskf.propagator`).
+- Every IMU sample propagates the state and its 19x19 error covariance (`eskf.propagator`).
 - A backend answer for capture time t0 updates state and covariance at t0 + td (td, the camera-IMU
   time offset, is a state) with the answer's own covariance, or a documented default when it sent
   none; the buffered IMU is then re-propagated to now. Gravity's direction in O and the biases are
@@ -112,7 +112,7 @@ class FilterTracker(TrackerBase):
 
     @property
     def covariance(self) -> np.ndarray | None:
-        """The error-state covariance (18x18, `eskf.state` order) at `now_ns`."""
+        """The error-state covariance (19x19, `eskf.state` order) at `now_ns`."""
         return None if self._anchor is None else self._full_at(self.now_ns).cov.copy()
 
     # ------------------------------------------------------------------ PPM
