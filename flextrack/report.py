@@ -216,26 +216,111 @@ def render_ablation(folder: Path) -> str:
         f"`{RESULTS_DIR.as_posix()}/{folder.name}/`."])
 
 
+def _nees(row: dict[str, str]) -> str:
+    """", NEES x" where the tracker gave a covariance (the paper's method gives none)."""
+    value = _num(row["nees_mean"])
+    return f", NEES {value:.1f}" if np.isfinite(value) else ""
+
+
+def _render_table2_vision(folder: Path, backend: str) -> str:
+    """Table 2's medium cells with an image estimator on rendered frames, both trackers."""
+    prov = read_provenance(folder / f"table2_{backend}.json")
+    backend_ms = prov.get("options", {}).get("backend_ms", 145.0)
+    lines = ["| tracker | backend | FPS | translational medium | circular medium |", "|---|---|---|---|---|"]
+    for variant, name in (("filter", f"table2_{backend}.csv"), ("paper", f"table2_{backend}_paper.csv")):
+        rows = read_csv(folder / name)
+        for estimator in ("gt_oracle", backend):
+            for fps in sorted({r["fps"] for r in rows}, key=float):
+                cell = {r["motion"]: r for r in rows if r["backend"] == estimator and r["fps"] == fps}
+                lines.append(f"| {variant} | {estimator} | {float(fps):g} | " + " | ".join(
+                    f"**{_num(cell[m]['proj_px']):.2f}** (jitter {_num(cell[m]['jitter_px']):.2f}, worst FINE "
+                    f"{_num(cell[m]['worst_fine_px']):.1f}{_nees(cell[m])})" if m in cell else ""
+                    for m in ("translational", "circular")) + " |")
+    command = f"flextrack experiment table2 --backend {backend}"
+    if backend_ms != 145.0:
+        command += f" --backend-ms {backend_ms:g}"
+    return "\n".join([
+        (f"2D error in px on rendered frames through a real gRPC server, `{backend}`'s compute modelled as "
+         f"{backend_ms:g} ms a frame, beside the ground-truth oracle on the same frames; the filter with the options "
+         "it uses for every backend, and the paper's method."), "", *lines, "",
+        provenance_line(prov, f"{command} --out out/table2_{backend}") + f" Files: "
+        f"`{RESULTS_DIR.as_posix()}/{folder.name}/`."])
+
+
 @section("table2_pvnet")
 def render_table2_pvnet(folder: Path) -> str:
     """Table 2's medium cells with the PVNet-style backend on rendered frames, both trackers."""
-    prov = read_provenance(folder / "table2_pvnet.json")
-    lines = ["| tracker | backend | FPS | translational medium | circular medium |", "|---|---|---|---|---|"]
-    for variant, name in (("filter", "table2_pvnet.csv"), ("paper", "table2_pvnet_paper.csv")):
-        rows = read_csv(folder / name)
-        for backend in ("gt_oracle", "pvnet"):
-            for fps in sorted({r["fps"] for r in rows}, key=float):
-                cell = {r["motion"]: r for r in rows if r["backend"] == backend and r["fps"] == fps}
-                lines.append(f"| {variant} | {backend} | {float(fps):g} | " + " | ".join(
-                    f"**{_num(cell[m]['proj_px']):.2f}** (jitter {_num(cell[m]['jitter_px']):.2f}, worst FINE "
-                    f"{_num(cell[m]['worst_fine_px']):.1f})" if m in cell else "" for m in ("translational", "circular"))
-                    + " |")
+    return _render_table2_vision(folder, "pvnet")
+
+
+@section("table2_pvnet_region")
+def render_table2_pvnet_region(folder: Path) -> str:
+    """Table 2's medium cells with the chained backend (pvnet, then region from the device's prior)."""
+    return _render_table2_vision(folder, "pvnet_region")
+
+
+def _prior_label(prov: dict) -> str:
+    options = prov.get("options", {})
+    label = f"{options.get('estimator', '?')}, seed {options.get('seed', '?')}"
+    return label + (", `--fresh` (every frame a new session)" if options.get("fresh") else "")
+
+
+@section("region_prior")
+def render_region_prior(folder: Path) -> str:
+    """`flextrack evaluate prior` runs: an estimator on a BOP folder from priors drawn around the truth."""
+    lines = [("| run | prior (per axis) | answers | < 5 px | ADD 10 % | median px | prior itself < 5 px (median px) "
+             "| NEES mean / median |"), "|---|---|---:|---:|---:|---:|---:|---:|"]
+    sources = []
+    for path in sorted(folder.glob("*.json")):
+        data = json.loads(path.read_text())
+        for level, result in data["levels"].items():
+            r = result["summary"]
+            if not r.get("ok"):
+                continue
+            lines.append(f"| {_prior_label(data)} | {level} | {r['answers']} | **{100 * r['share_proj_5px']:.0f} %** | "
+                         f"{100 * r['share_add_10']:.0f} % | {r['median_proj_px']:.2f} | "
+                         f"{100 * r['prior_share_proj_5px']:.0f} % ({r['prior_median_proj_px']:.1f}) | "
+                         f"{r['nees_mean']:.1f} / {r['nees_median']:.1f} |")
+        sources.append(f"- `{path.name}`: " + provenance_line(data, data.get("command")).removeprefix("Source: "))
+    return "\n".join([*lines, "", "Sources (chi-square(6): mean 6, median 5.35):", *sources,
+                      f"Files: `{RESULTS_DIR.as_posix()}/{folder.name}/`."])
+
+
+@section("pvnet_circular")
+def render_pvnet_circular(folder: Path) -> str:
+    """pvnet alone (no prior: the global path of a first pose) on frames of the circular programs."""
+    lines = ["| program | seed | frames | pose found | < 5 px | ADD 10 % | median px |", "|---|---:|---:|---:|---:|---:|---:|"]
+    total = below = 0
+    prov = {}
+    for path in sorted(folder.glob("*.json")):
+        data = json.loads(path.read_text())
+        prov = data["provenance"]
+        spec = prov.get("frames_generator") or {}
+        r = data["summary"]["all"]
+        total += r["frames"]
+        below += round(r["proj_below_5px"] * r["frames"])
+        lines.append(f"| {spec.get('motion', '?')} {spec.get('level', '?')} | {spec.get('seed', '?')} | {r['frames']} | "
+                     f"{r['found']} | **{100 * r['proj_below_5px']:.1f} %** | {100 * r['add_below_10pct']:.1f} % | "
+                     f"{r['median_proj_px']:.2f} |")
+    lines.append(f"| all | | {total} | | **{100 * below / max(total, 1):.1f} %** | | |")
+    return "\n".join([*lines, "", provenance_line(prov, "flextrack train pvnet-eval --model "
+                      "flextrack/assets/models/pvnet_default/pvnet.onnx --bop SEQUENCE --obj-id 1 --jpeg 90 --out OUT")
+                      + f" (the last run; every file records its own). Files: `{RESULTS_DIR.as_posix()}/{folder.name}/`."])
+
+
+@section("bench_region")
+def render_bench_region(folder: Path) -> str:
+    """`flextrack bench region`: the region estimator's CPU time a frame, and the service's frame rate with it."""
+    data = json.loads((folder / "bench_region.json").read_text())
+    local, served = data["in_process"], data["grpc"]
     return "\n".join([
-        ("2D error in px on rendered frames through a real gRPC server, pvnet's compute modelled as 145 ms a frame, "
-         "beside the ground-truth oracle on the same frames; the filter with the options it uses for every backend, "
-         "and the paper's method."), "", *lines, "",
-        provenance_line(prov, "flextrack experiment table2 --backend pvnet --out out/table2_pvnet") + f" Files: "
-        f"`{RESULTS_DIR.as_posix()}/{folder.name}/`."])
+        "| figure | value |", "|---|---:|",
+        (f"| refinement, one thread, CPU ms a frame: median (p90) | **{local['cpu_ms_median']:.1f}** "
+        f"({local['cpu_ms_p90']:.1f}) |"),
+        f"| through gRPC, {served['callers']} closed-loop callers: frames/s | **{served['frames_per_s']:.1f}** |",
+        f"| latency ms: p50 / p99 | {served['latency_ms_p50']:.1f} / {served['latency_ms_p99']:.1f} |",
+        f"| answers under 5 px | {100 * served['share_proj_5px']:.1f} % of {served['answers']} |", "",
+        provenance_line(data["provenance"]) + f" Files: `{RESULTS_DIR.as_posix()}/{folder.name}/`."])
 
 
 # --- the command -----------------------------------------------------------------------------------

@@ -122,6 +122,21 @@ def test_region_converges_from_a_perturbed_prior_on_a_rendered_frame(region, ren
     assert refused <= 2, (before, after)
 
 
+def test_the_answers_covariance_leaves_the_prior_out(region, rendered_frame):
+    """The device holds its prior; an answer that counted it in would make the device's filter count it
+    twice at every frame. So a prior 100x more certain must not make the answer's covariance shrink."""
+    image, T = rendered_frame
+    prior = se3.make(so3.exp(np.radians([0.5, -0.5, 0.3])) @ T[:3, :3], T[:3, 3] + [0.001, -0.001, 0.002])
+    loose = diagonal_covariance(np.radians(5.0), 0.01)
+    answers = [region.estimate(EstimateInput(frame_id=0, capture_time_ns=0, camera=CAMERA, image=image,
+                                             prior_T_CO=prior, prior_covariance=cov))
+               for cov in (loose, loose / 100)]
+    assert all(a.status == Status.OK for a in answers), [a.message for a in answers]
+    variances = np.array([np.diag(a.covariance) for a in answers])
+    np.testing.assert_allclose(variances[1], variances[0], rtol=0.3)
+    assert np.all(variances[1][:3] > np.diag(loose)[:3] / 100 * 5)  # far above the tight prior's own
+
+
 def test_region_refuses_a_request_without_a_prior(region, rendered_frame):
     image, _ = rendered_frame
     with pytest.raises(InvalidInput, match="prior"):

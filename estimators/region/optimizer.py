@@ -5,10 +5,14 @@ frame, rotation first). Each line is a Gaussian measurement of where its contour
 project along its normal (mean mu, variance s2 from `contour_distributions`); its Jacobian is the
 normal times the projection's derivative. The prior enters as a Tikhonov term weighted by the
 inverse of its covariance (pulling towards the prior pose), and each step is damped towards the
-current pose (SRT3D's per-step Tikhonov). The answer's covariance is the inverse of the final
-Hessian (image lines + prior), the lines' part divided by `covariance_inflation`: the lines' errors
-are correlated (neighbouring lines see the same pixels) and the contour model is approximate (the
-nearest of the sampled views), which a sum of independent terms overstates.
+current pose (SRT3D's per-step Tikhonov). The answer's covariance is that of the image's evidence
+alone: the inverse of the lines' part of the final Hessian, divided by `covariance_inflation` (the
+lines' errors are correlated, neighbouring lines see the same pixels, and the contour model is
+approximate, the nearest of the sampled views, which a sum of independent terms overstates). The
+prior is left out of it on purpose: the device that sent the prior holds it already, and a filter
+that fused an answer with its own prior counted in would count that prior twice at every frame
+(measured: its covariance halved with every answer and its NEES reached 1e6). Directions the
+outline does not constrain (depth, often) are capped at `max_sigma_deg` / `max_sigma_m`.
 """
 
 from __future__ import annotations
@@ -31,7 +35,9 @@ class OptimizerConfig:
     line_weight: float = 1.0  # multiplies every line's information (1 / variance)
     damping_rotation: float = 10000.0  # per-step Tikhonov, per rad^2 (tuned on the real cat, docs/region.md)
     damping_translation: float = 300000.0  # per m^2
-    covariance_inflation: float = 150.0  # fitted on the real cat: median NEES about 6.7 at 10 mm / 5 deg (docs/region.md)
+    covariance_inflation: float = 50.0  # fitted on the real cat (docs/region.md)
+    max_sigma_deg: float = 45.0  # the covariance's cap where the outline says nothing
+    max_sigma_m: float = 0.3
 
 
 def line_jacobians(lines: Lines, K: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -56,7 +62,7 @@ class OptimizationResult:
     R: np.ndarray
     t: np.ndarray
     hessian: np.ndarray  # final, image lines + prior, per the wire's error convention
-    covariance: np.ndarray
+    covariance: np.ndarray  # the image's evidence alone (see the module's docstring)
     lines_used: int
     last_lines: Lines | None
 
@@ -88,6 +94,6 @@ def optimize(frame: CellImage, K: np.ndarray, model: ViewpointModel, hist: Colou
                 return None
             R = so3.exp(step[:3]) @ R
             t = t + step[3:]
-    # the lines' information deflated by `covariance_inflation`, the prior's kept as it came
-    covariance = np.linalg.inv(prior_information + (H - prior_information) / cfg.covariance_inflation)
+    floor = np.diag([np.radians(cfg.max_sigma_deg) ** -2] * 3 + [cfg.max_sigma_m ** -2] * 3)
+    covariance = np.linalg.inv(floor + (H - prior_information) / cfg.covariance_inflation)
     return OptimizationResult(R, t, H, 0.5 * (covariance + covariance.T), used, lines)

@@ -14,6 +14,7 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "container": ("flextrack.benchmarks.container_check", "build the Dockerfile with container-check and check the image serves"),
     "tracker": ("flextrack.benchmarks.tracker_bench", "tracker core: PIM/PRM per call and PPM per IMU sample; --accuracy"),
     "pvnet": ("flextrack.benchmarks.pvnet_bench", "pvnet estimator: decode/inference/voting/PnP ms, frames/s per batch"),
+    "region": ("flextrack.benchmarks.region_bench", "region estimator: CPU ms a frame, and the service's frames/s with it"),
     "service": ("flextrack.benchmarks.service_bench", "Track stream and unary Estimate: gt_oracle vs a no-op echo servicer"),
     "sdk-memory": ("flextrack.benchmarks.sdk_memory_bench", "the client SDK's RSS and buffer sizes over a long live run"),
 }

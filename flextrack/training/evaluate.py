@@ -221,10 +221,15 @@ def run(args) -> int:
             frames = rendered_frames(object_path, args.frames, args.seed, args.scenes, args.roll_deg)
         if args.jpeg is not None:
             frames = as_sent(frames, args.jpeg, args.jpeg_chroma)
+        provenance = of_args(args, command="flextrack train pvnet-eval")
+        if args.bop is not None and (args.bop / "sequence.yaml").is_file():  # a simulated sequence: how it was made
+            import yaml
+
+            provenance["frames_generator"] = yaml.safe_load((args.bop / "sequence.yaml").read_text()).get("generator")
         summary = evaluate(args.model, object_path, frames, args.out, zoom=not args.no_zoom, sheet=args.sheet,
                            rotations=args.rotations, refine=not args.no_refine,
                            jpeg=None if args.jpeg is None else f"{args.jpeg}/{args.jpeg_chroma}",
-                           provenance=of_args(args, command="flextrack train pvnet-eval"))
+                           provenance=provenance)
     except (FileNotFoundError, ValueError) as exc:
         print(f"evaluate: {exc}", file=sys.stderr)
         return 2

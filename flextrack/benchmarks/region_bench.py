@@ -1,0 +1,159 @@
+"""`flextrack bench region`: the region estimator's cost a frame, and the service's frame rate with it.
+
+Frames of the default object in the simulator's room (640x480, JPEG as a device sends them), each
+with a prior drawn around the truth (10 mm / 5 deg per axis by default). Two figures:
+
+1. in-process, one thread: the refinement's CPU ms a frame (decode excluded), median and p90;
+2. through a real gRPC server on loopback serving the default config: `--callers` closed-loop
+   unary callers, each its own session, for `--seconds`; frames/s, latency p50/p99, and the share
+   of answers under 5 px.
+
+The first request builds (or reads from the cache) the viewpoint model; it is not timed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from flextrack import assets
+
+PROJ_PX = 5.0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--estimator", default="region", help="an estimator of the default config that takes a prior")
+    parser.add_argument("--frames", type=int, default=24, help="rendered frames (cycled through)")
+    parser.add_argument("--prior", default="10:5", help="prior sigma per axis, mm:deg")
+    parser.add_argument("--callers", type=int, default=2, help="concurrent closed-loop callers through gRPC")
+    parser.add_argument("--seconds", type=float, default=10.0, help="measuring time through gRPC")
+    parser.add_argument("--seed", type=int, default=0, help="seeds the frames' priors")
+    parser.add_argument("--out", type=Path, help="write the figures and their provenance here (JSON)")
+
+
+def _frames(n: int, seed: int, sigma_m: float, sigma_rad: float):
+    """(JPEG bytes, T_CO truth, prior T_CO) per frame."""
+    from flextrack.geometry import se3, so3
+    from flextrack.runners.payload import frame_jpeg
+    from flextrack.training.evaluate import rendered_frames
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for _, rgb, camera, T, _ in rendered_frames(assets.default_object_model(), n, seed=7, scenes=1):
+        d_theta, d_t = rng.normal(0, sigma_rad, 3), rng.normal(0, sigma_m, 3)
+        prior = se3.make(so3.exp(-d_theta) @ T[:3, :3], T[:3, 3] - d_t)
+        out.append((frame_jpeg(rgb, 90), T, prior))
+    return out, camera
+
+
+def _request(i: int, frame, camera, covariance, estimator: str, session: str):
+    from flextrack import wire
+    from flextrack.v1 import pose_estimation_pb2 as pb
+
+    jpeg, _, prior = frame
+    return pb.EstimateRequest(
+        session_id=session, frame_id=i, capture_time_ns=i, estimator=estimator,
+        image=pb.Image(encoding=pb.Image.JPEG, data=jpeg, width=camera.width, height=camera.height),
+        intrinsics=wire.intrinsics_to_pb(camera),
+        prior=pb.PosePrior(pose=wire.pose_to_pb(prior), covariance=wire.covariance_to_pb(covariance)))
+
+
+def _in_process(registry, name: str, frames, camera, covariance) -> dict:
+    from estimators.base import EstimateInput
+    from flextrack.v1 import pose_estimation_pb2 as pb
+    from service.request_decoding import decode_image
+
+    estimator = registry.get(name)
+    cpu_ms = []
+    for i, (jpeg, _, prior) in enumerate(frames):
+        rgb = decode_image(pb.Image(encoding=pb.Image.JPEG, data=jpeg, width=camera.width, height=camera.height),
+                           camera)
+        t = time.process_time()
+        estimator.estimate(EstimateInput(frame_id=i, capture_time_ns=i, session_id="bench", camera=camera, image=rgb,
+                                         prior_T_CO=prior, prior_covariance=covariance))
+        cpu_ms.append((time.process_time() - t) * 1e3)
+    return {"cpu_ms_median": float(np.median(cpu_ms)), "cpu_ms_p90": float(np.percentile(cpu_ms, 90)),
+            "frames": len(cpu_ms)}
+
+
+def _through_grpc(registry, name: str, frames, camera, covariance, callers: int, seconds: float) -> dict:
+    import grpc
+
+    from estimators.objects import load_object
+    from flextrack import wire
+    from flextrack.geometry import metrics
+    from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
+    from service.server import BackgroundServer
+
+    vertices = load_object("default", assets.default_object_model()).vertices
+    latencies, errors, lock = [], [], threading.Lock()
+    start = threading.Event()
+    deadline = [0.0]
+
+    def caller(k: int, address: str) -> None:
+        with grpc.insecure_channel(address) as channel:
+            stub = pb_grpc.PoseEstimationStub(channel)
+            stub.Estimate(_request(0, frames[0], camera, covariance, name, f"bench-{k}"))  # session warm
+            start.wait()
+            i = k
+            while time.perf_counter() < deadline[0]:
+                frame = frames[i % len(frames)]
+                t = time.perf_counter()
+                answer = stub.Estimate(_request(i, frame, camera, covariance, name, f"bench-{k}"))
+                ms = (time.perf_counter() - t) * 1e3
+                px = (metrics.proj_px(wire.pose_from_pb(answer.pose), frame[1], camera, vertices)
+                      if answer.status == answer.OK else float("inf"))
+                with lock:
+                    latencies.append(ms)
+                    errors.append(px)
+                i += callers
+
+    with BackgroundServer(registry) as server:
+        threads = [threading.Thread(target=caller, args=(k, server.address)) for k in range(callers)]
+        for th in threads:
+            th.start()
+        time.sleep(0.5)  # the callers' warm-up requests are on their way; none is timed
+        deadline[0] = time.perf_counter() + seconds
+        t0 = time.perf_counter()
+        start.set()
+        for th in threads:
+            th.join()
+        wall = time.perf_counter() - t0
+    lat = np.array(latencies)
+    return {"frames_per_s": len(lat) / wall, "answers": len(lat), "latency_ms_p50": float(np.median(lat)),
+            "latency_ms_p99": float(np.percentile(lat, 99)),
+            "share_proj_5px": float(np.mean(np.array(errors) < PROJ_PX)), "callers": callers, "seconds": seconds}
+
+
+def run(args: argparse.Namespace) -> int:
+    from estimators.registry import EstimatorRegistry
+    from flextrack.provenance import of_args
+    from flextrack.wire import diagonal_covariance
+
+    mm, deg = (float(x) for x in args.prior.split(":"))
+    registry = EstimatorRegistry.from_config(assets.default_config_path())
+    if args.estimator not in registry.names():
+        print(f"bench region: the default config serves {registry.names()}, not {args.estimator!r}")
+        return 2
+    covariance = diagonal_covariance(np.radians(deg), mm / 1e3)
+    frames, camera = _frames(args.frames, args.seed, mm / 1e3, np.radians(deg))
+    print(f"bench region: {args.estimator}, {len(frames)} rendered 640x480 JPEG frames, priors {mm:g} mm / {deg:g} deg")
+    _in_process(registry, args.estimator, frames[:1], camera, covariance)  # the viewpoint model, built or read
+    local = _in_process(registry, args.estimator, frames, camera, covariance)
+    print(f"in-process, one thread: {local['cpu_ms_median']:.1f} ms CPU a frame median "
+          f"(p90 {local['cpu_ms_p90']:.1f}), decode excluded")
+    served = _through_grpc(registry, args.estimator, frames, camera, covariance, args.callers, args.seconds)
+    print(f"through gRPC, {args.callers} callers: {served['frames_per_s']:.1f} frames/s, latency p50 "
+          f"{served['latency_ms_p50']:.1f} ms, p99 {served['latency_ms_p99']:.1f} ms; "
+          f"{100 * served['share_proj_5px']:.1f} % of {served['answers']} answers under {PROJ_PX:g} px")
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps({"in_process": local, "grpc": served,
+                                        "provenance": of_args(args, command="flextrack bench region")}, indent=1))
+        print(f"wrote {args.out}")
+    return 0
