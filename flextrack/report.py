@@ -259,12 +259,19 @@ def render_table2_pvnet_region(folder: Path) -> str:
     return _render_table2_vision(folder, "pvnet_region")
 
 
+def _prior_itself(r: dict) -> str:
+    if r.get("prior_share_proj_5px") is None:
+        return "-"
+    return f"{100 * r['prior_share_proj_5px']:.0f} % ({r['prior_median_proj_px']:.1f})"
+
+
 def _prior_label(prov: dict) -> str:
     options = prov.get("options", {})
     label = f"{options.get('estimator', '?')}, seed {options.get('seed', '?')}"
     return label + (", `--fresh` (every frame a new session)" if options.get("fresh") else "")
 
 
+@section("region_clutter")
 @section("region_prior")
 def render_region_prior(folder: Path) -> str:
     """`flextrack evaluate prior` runs: an estimator on a BOP folder from priors drawn around the truth."""
@@ -277,9 +284,9 @@ def render_region_prior(folder: Path) -> str:
             r = result["summary"]
             if not r.get("ok"):
                 continue
-            lines.append(f"| {_prior_label(data)} | {level} | {r['answers']} | **{100 * r['share_proj_5px']:.0f} %** | "
+            lines.append(f"| {_prior_label(data)} | {level} | {r['answers']} | **{100 * r['share_proj_5px']:.1f} %** | "
                          f"{100 * r['share_add_10']:.0f} % | {r['median_proj_px']:.2f} | "
-                         f"{100 * r['prior_share_proj_5px']:.0f} % ({r['prior_median_proj_px']:.1f}) | "
+                         f"{_prior_itself(r)} | "
                          f"{r['nees_mean']:.1f} / {r['nees_median']:.1f} |")
         sources.append(f"- `{path.name}`: " + provenance_line(data, data.get("command")).removeprefix("Source: "))
     return "\n".join([*lines, "", "Sources (chi-square(6): mean 6, median 5.35):", *sources,
@@ -315,7 +322,7 @@ def render_bench_region(folder: Path) -> str:
     local, served = data["in_process"], data["grpc"]
     return "\n".join([
         "| figure | value |", "|---|---:|",
-        (f"| refinement, one thread, CPU ms a frame: median (p90) | **{local['cpu_ms_median']:.1f}** "
+        (f"| refinement, CPU ms a frame (process time, decode excluded): median (p90) | **{local['cpu_ms_median']:.1f}** "
         f"({local['cpu_ms_p90']:.1f}) |"),
         f"| through gRPC, {served['callers']} closed-loop callers: frames/s | **{served['frames_per_s']:.1f}** |",
         f"| latency ms: p50 / p99 | {served['latency_ms_p50']:.1f} / {served['latency_ms_p99']:.1f} |",

@@ -78,19 +78,22 @@ def test_viewpoint_model_is_cached_on_disk(default_object, tmp_path):
 @pytest.fixture(scope="module")
 def rendered_frame(region, default_object):
     """The default object rendered at a pose on the model's view sphere, over a textured background."""
-    from flextrack.simulator.render import Renderer
-
     model = region.viewpoint_model("default")
     R, t = look_at(model.directions[30], model.center, 0.8)
     T = se3.make(so3.exp(np.array([0.0, 0.0, 0.3])) @ R, so3.exp(np.array([0.0, 0.0, 0.3])) @ t)  # rolled
-    with Renderer(CAMERA, default_object.model_path) as renderer:
+    return rendered_over_background(default_object, T), T
+
+
+def rendered_over_background(obj, T):
+    from flextrack.simulator.render import Renderer
+
+    with Renderer(CAMERA, obj.model_path) as renderer:
         frame = renderer.render(T)
     rng = np.random.default_rng(3)
     yy, xx = np.mgrid[0:CAMERA.height, 0:CAMERA.width]
     background = np.stack([80 + 60 * np.sin(xx / 23.0 + c) * np.cos(yy / 31.0 - c) for c in (0.0, 1.3, 2.6)], axis=2)
     background += rng.normal(0, 6, background.shape)
-    image = np.where(frame.mask[..., None], frame.rgb, np.clip(background, 0, 255)).astype(np.uint8)
-    return image, T
+    return np.where(frame.mask[..., None], frame.rgb, np.clip(background, 0, 255)).astype(np.uint8)
 
 
 def perturbed(T, rng, sigma_m, sigma_deg):
@@ -135,6 +138,39 @@ def test_the_answers_covariance_leaves_the_prior_out(region, rendered_frame):
     variances = np.array([np.diag(a.covariance) for a in answers])
     np.testing.assert_allclose(variances[1], variances[0], rtol=0.3)
     assert np.all(variances[1][:3] > np.diag(loose)[:3] / 100 * 5)  # far above the tight prior's own
+
+
+def test_a_lens_distortion_sent_with_the_intrinsics_is_taken_out(region, rendered_frame, default_object):
+    """The frame as a lens with barrel distortion sees it: refined with its coefficients as well as on the
+    pinhole frame, and better than when they are left out."""
+    from dataclasses import replace
+
+    import cv2
+
+    _, T_centre = rendered_frame
+    T = T_centre.copy()
+    T[:2, 3] += [0.2, 0.12]  # towards a corner, where a lens bends most
+    image = rendered_over_background(default_object, T)
+    distortion = (-0.25, 0.08, 0.0, 0.0, 0.0)
+    K = CAMERA.K
+    # each pixel of the distorted image looks up where its ray lands in the pinhole image
+    v, u = np.mgrid[0:CAMERA.height, 0:CAMERA.width].astype(np.float32)
+    rays = cv2.undistortPoints(np.stack([u.ravel(), v.ravel()], 1)[:, None, :], K, np.array(distortion), P=K)
+    map_xy = rays.reshape(CAMERA.height, CAMERA.width, 2)
+    distorted = cv2.remap(image, map_xy[..., 0], map_xy[..., 1], cv2.INTER_LINEAR)
+    prior = se3.make(so3.exp(np.radians([1.0, -1.0, 0.5])) @ T[:3, :3], T[:3, 3] + [0.003, -0.002, 0.004])
+    cov = diagonal_covariance(np.radians(5.0), 0.01)
+
+    def error(frame, camera):
+        out = region.estimate(EstimateInput(frame_id=0, capture_time_ns=0, camera=camera, image=frame,
+                                            prior_T_CO=prior, prior_covariance=cov))
+        return metrics.proj_px(out.T_CO, T, CAMERA, default_object.vertices) if out.status == Status.OK else np.inf
+
+    pinhole = error(image, CAMERA)
+    with_lens = error(distorted, replace(CAMERA, distortion=distortion))
+    lens_ignored = error(distorted, CAMERA)
+    assert with_lens < max(1.5, 1.5 * pinhole), (pinhole, with_lens)
+    assert lens_ignored > with_lens + 1.0, (lens_ignored, with_lens)
 
 
 def test_region_refuses_a_request_without_a_prior(region, rendered_frame):

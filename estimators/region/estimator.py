@@ -6,11 +6,13 @@ those with a global estimator.
 
 from __future__ import annotations
 
+import functools
 import threading
 import time
 from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from estimators.base import EstimateInput, EstimateOutput, Estimator, InvalidInput, Status
@@ -190,6 +192,9 @@ class RegionEstimator(Estimator):
             raise InvalidInput(f"estimator '{self.name}' needs intrinsics and an image")
         image = inp.image if inp.image.ndim == 3 else np.repeat(inp.image[..., None], 3, axis=2)
         K = inp.camera.K
+        if any(inp.camera.distortion):  # the lines are projected by a pinhole: take the lens out of the image
+            image = cv2.remap(image, *_undistortion_maps(tuple(K.ravel()), inp.camera.distortion, image.shape[:2]),
+                              cv2.INTER_LINEAR)
         cov = inp.prior_covariance if inp.prior_covariance is not None else self.default_prior_covariance
         information = np.linalg.inv(cov)
         R0, t0 = inp.prior_T_CO[:3, :3], inp.prior_T_CO[:3, 3]
@@ -229,3 +234,11 @@ class RegionEstimator(Estimator):
                                   f"(confidence {confidence:.2f} < {self.min_confidence})", confidence=confidence,
                                   stage_ms=stage)
         return EstimateOutput(Status.OK, T, confidence, result.covariance, message, stage)
+
+
+@functools.lru_cache(maxsize=8)
+def _undistortion_maps(K: tuple[float, ...], distortion: tuple[float, ...], shape: tuple[int, int]):
+    """OpenCV's remap tables from the lens's image to a pinhole one with the same K (cached: a device sends
+    the same intrinsics with every frame)."""
+    return cv2.initUndistortRectifyMap(np.array(K).reshape(3, 3), np.array(distortion), None,
+                                       np.array(K).reshape(3, 3), (shape[1], shape[0]), cv2.CV_16SC2)

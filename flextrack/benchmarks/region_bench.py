@@ -3,7 +3,7 @@
 Frames of the default object in the simulator's room (640x480, JPEG as a device sends them), each
 with a prior drawn around the truth (10 mm / 5 deg per axis by default). Two figures:
 
-1. in-process, one thread: the refinement's CPU ms a frame (decode excluded), median and p90;
+1. in-process: the refinement's CPU time a frame (process time, decode excluded), median and p90;
 2. through a real gRPC server on loopback serving the default config: `--callers` closed-loop
    unary callers, each its own session, for `--seconds`; frames/s, latency p50/p99, and the share
    of answers under 5 px.
@@ -145,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"bench region: {args.estimator}, {len(frames)} rendered 640x480 JPEG frames, priors {mm:g} mm / {deg:g} deg")
     _in_process(registry, args.estimator, frames[:1], camera, covariance)  # the viewpoint model, built or read
     local = _in_process(registry, args.estimator, frames, camera, covariance)
-    print(f"in-process, one thread: {local['cpu_ms_median']:.1f} ms CPU a frame median "
+    print(f"in-process: {local['cpu_ms_median']:.1f} ms CPU a frame median "
           f"(p90 {local['cpu_ms_p90']:.1f}), decode excluded")
     served = _through_grpc(registry, args.estimator, frames, camera, covariance, args.callers, args.seconds)
     print(f"through gRPC, {args.callers} callers: {served['frames_per_s']:.1f} frames/s, latency p50 "
