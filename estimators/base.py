@@ -75,13 +75,15 @@ class Estimator:
     `uses_image` tells the service whether to decode the request's image (decoding a 100 kB JPEG
     costs milliseconds, wasted on estimators that never look at pixels). `cheap` marks estimators
     that answer in well under a millisecond: the service calls them on its event loop, where a hop
-    to a worker thread would cost more than the call itself.
+    to a worker thread would cost more than the call itself. `needs_prior` marks estimators that only
+    refine the device's prior (they cannot give a first pose; a `chained` one can).
     """
 
     kind: str = ""
     version: str = "0"
     uses_image: bool = False
     cheap: bool = False
+    needs_prior: bool = False
     description: str = ""
 
     def __init__(self, name: str, object_ids: list[str] | tuple[str, ...] = ()):

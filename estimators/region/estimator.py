@@ -33,6 +33,7 @@ class RegionEstimator(Estimator):
     kind = "region"
     version = "1"
     uses_image = True
+    needs_prior = True
     description = "prior-guided region-based refinement (correspondence lines, colour histograms)"
 
     def __init__(self, name: str, objects: dict, *, optimizer: OptimizerConfig | None = None,

@@ -37,6 +37,10 @@ def run(out: Path, backend: str, seeds: list[int], duration_s: float = 10.0, fps
     registry = EstimatorRegistry.from_config(config)
     if backend not in registry.names() or ORACLE not in registry.names():
         raise ValueError(f"{config} must serve '{backend}' and '{ORACLE}'; it serves {registry.names()}")
+    if registry.get(backend).needs_prior:
+        chained = [e.name for e in registry if getattr(e, "local_estimator", None) is registry.get(backend)]
+        raise ValueError(f"'{backend}' only refines the device's prior: it cannot give the tracker its first pose; "
+                         f"run a chained estimator that starts from a global one: {', '.join(chained) or 'none served'}")
     cache = out / "sequences"
     rows: list[list] = []
     cells = [(m, lv, f) for m in motions for lv in levels for f in fps_list]
