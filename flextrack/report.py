@@ -1,7 +1,8 @@
 """`flextrack report`: the README's and docs' result sections, generated from the stored results.
 
 A stored result is a folder `docs/results/NAME/` with the run's small files (CSV/JSON) and its
-provenance (`NAME.json`: {"provenance": flextrack.provenance.provenance(...), ...}). A Markdown file
+provenance (`NAME.json`: {"provenance": flextrack.provenance.provenance(...), ...}; a folder of several
+runs instead holds one JSON per run, each with its own provenance). A Markdown file
 shows it between two markers:
 
     <!-- results:NAME -->
@@ -77,6 +78,23 @@ def _range(values) -> str:
 # --- the sections --------------------------------------------------------------------------------
 
 
+def _table2_nees(rows: list[dict[str, str]]) -> str:
+    """The filter's mean NEES per cell against its 95 % interval (correlated frames allowed for)."""
+    parts = []
+    for backend, title in (("gt", "GT"), ("noisy", "Noisy")):
+        cells = [r for r in rows if r["backend"] == backend and "nees_lo" in r]
+        if not cells:
+            continue
+        nees = [_num(r["nees_mean"]) for r in cells]
+        inside = sum(_num(r["nees_lo"]) <= _num(r["nees_mean"]) <= _num(r["nees_hi"]) for r in cells)
+        low = sum(_num(r["nees_mean"]) < _num(r["nees_lo"]) for r in cells)
+        parts.append(f"{title}: mean NEES {_range(nees)}, inside its interval in {inside} of {len(cells)} cells "
+                     f"({low} below it: covariance larger than the errors, {len(cells) - inside - low} above it)")
+    return ("The filter's consistency (chi-square, 6 dof; each cell's 95 % interval of the mean allows for "
+            "consecutive frames sharing one state: `flextrack.evaluation.consistency`, columns `nees_lo`, "
+            "`nees_hi`). " + "; ".join(parts) + ".") if parts else ""
+
+
 @section("table2")
 def render_table2(folder: Path) -> str:
     """Table 2: the paper / the paper-faithful tracker / the filter per cell (2D px), the filter's jitter."""
@@ -119,11 +137,12 @@ def render_table2(folder: Path) -> str:
         f"{'GT' if b == 'gt' else 'Noisy'} backend: the paper {_range(ranges[(b, 'paper')])} px, paper-faithful "
         f"{_range(ranges[(b, 'faithful')])} px, the filter {_range(ranges[(b, 'filter')])} px "
         f"(jitter {_range(ranges[(b, 'jitter')])} px)" for b in paper.BACKENDS if (b, "filter") in ranges)
+    nees_text = _table2_nees(variants["filter"])
     return "\n".join([
         (f"Mean 2D projection error in px ({seed_text}), per cell: the paper / our paper-faithful tracker / "
          "**the filter** (the error-state Kalman filter, the default tracker), and in parentheses the filter's "
          "jitter (RMS frame-to-frame change of the 2D error, px). Noisy backend: 3 mm and 0.3 deg per axis."),
-        "", *lines, "", f"Ranges over the cells: {summary}.", "",
+        "", *lines, "", f"Ranges over the cells: {summary}.", "", nees_text, "",
         provenance_line(prov, "flextrack experiment table2 --out out/table2") + " Files: "
         f"`{RESULTS_DIR.as_posix()}/{folder.name}/` (per-cell position, orientation, NEES and worst-frame columns "
         "too)."])

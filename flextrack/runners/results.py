@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from flextrack import wire
+from flextrack.evaluation.consistency import nees_mean_interval
 from flextrack.formats import tum
 from flextrack.geometry import metrics
 from flextrack.geometry.camera import PinholeCamera
@@ -65,6 +66,8 @@ class Summary:
     jitter_px: float = math.nan  # RMS over frames and model points
     nees_mean: float = math.nan  # over scored frames with a covariance (6 for a consistent tracker)
     nees_frames: int = 0
+    nees_lo: float = math.nan  # the 95 % interval of nees_mean for a consistent tracker, allowing for
+    nees_hi: float = math.nan  # correlated frames (flextrack.evaluation.consistency)
     fine_frames: int = 0
     worst_fine_px: float = math.nan  # the largest 2D error of a frame called FINE
     status_counts: dict[str, int] = field(default_factory=dict)
@@ -140,13 +143,15 @@ class TrackRecord:
         def mean(values) -> float:
             return float(np.mean(values)) if len(values) else math.nan
 
+        interval = nees_mean_interval(nees)
+
         return Summary(
             frames=len(self.rows), scored_frames=len(scored),
             pos_mm=mean([r.pos_mm for r in scored]), ori_deg=mean([r.ori_deg for r in scored]),
             proj_px=mean(proj), proj_px_p95=float(np.percentile(proj, 95)) if len(proj) else math.nan,
             proj_px_max=float(proj.max()) if len(proj) else math.nan,
             jitter_px=float(np.sqrt(np.mean(jitter ** 2))) if len(jitter) else math.nan,
-            nees_mean=mean(nees), nees_frames=len(nees), fine_frames=counts.get("FINE", 0),
+            nees_mean=mean(nees), nees_frames=len(nees), nees_lo=interval.lo, nees_hi=interval.hi, fine_frames=counts.get("FINE", 0),
             worst_fine_px=max(fine) if fine else math.nan, status_counts=counts,
             requests=self.requests, responses=self.responses, failures=self.failures,
             bad_covariances=self.bad_covariances, time_offset_ms=self.time_offset_ms)

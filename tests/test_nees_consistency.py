@@ -1,0 +1,36 @@
+"""The NEES interval that allows for correlated frames: right coverage on series whose truth is known."""
+
+import numpy as np
+
+from flextrack.evaluation.consistency import autocorrelation_time, nees_mean_interval
+
+
+def correlated_nees(rng, n, phi, scale=1.0):
+    """NEES of a 6-dof error that follows an AR(1) process (consecutive frames share most of it)."""
+    e = np.zeros((n, 6))
+    e[0] = rng.standard_normal(6)
+    for k in range(1, n):
+        e[k] = phi * e[k - 1] + np.sqrt(1 - phi**2) * rng.standard_normal(6)
+    return scale * (e**2).sum(axis=1)
+
+
+def test_independent_frames_get_the_usual_interval():
+    x = np.random.default_rng(0).chisquare(6, 4000)
+    interval = nees_mean_interval(x)
+    assert autocorrelation_time(x) < 1.2 and interval.n_eff > 3300
+    assert interval.holds(x.mean()) and 5.8 < interval.lo < 6 < interval.hi < 6.2
+
+
+def test_the_interval_covers_a_consistent_estimator_about_95_percent_of_the_time():
+    rng = np.random.default_rng(1)
+    runs = [correlated_nees(rng, 1500, 0.9) for _ in range(200)]
+    covered = np.mean([nees_mean_interval(x).holds(x.mean()) for x in runs])
+    naive = np.mean([abs(x.mean() - 6) < 1.96 * np.sqrt(12 / len(x)) for x in runs])  # as if independent
+    assert 0.88 <= covered <= 0.99, covered
+    assert naive < 0.6, naive  # the independent-frames interval would call most consistent runs inconsistent
+
+
+def test_an_overconfident_estimator_fails():
+    x = correlated_nees(np.random.default_rng(2), 3000, 0.9, scale=2.0)  # covariance half the truth
+    interval = nees_mean_interval(x)
+    assert not interval.holds(x.mean()) and x.mean() > interval.hi
