@@ -19,7 +19,8 @@ def test_table2_on_short_sequences_writes_the_agreed_csv(tmp_path, capsys):
     assert main(["experiment", "table2", "--out", str(out), "--duration", "3", "--fps", "30", "--in-process"]) == 0
     rows = _csv(out / "table2.csv")
     assert list(rows[0]) == ["motion", "level", "fps", "backend", "seed", "pos_mm", "ori_deg", "proj_px",
-                             "paper_pos_mm", "paper_ori_deg", "paper_proj_px", "jitter_px", "nees_mean", "worst_fine_px"]
+                             "paper_pos_mm", "paper_ori_deg", "paper_proj_px", "jitter_px", "nees_mean", "nees_lo",
+                             "nees_hi", "worst_fine_px"]
     assert len(rows) == 6 * 2  # six programs x two backends at one frame rate
     assert {(r["motion"], r["backend"]) for r in rows} == {(m, b) for m in ("translational", "circular")
                                                            for b in ("gt", "noisy")}
