@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from estimators.base import EstimateInput, Status
-from estimators.gt_oracle import GtOracleEstimator
+from estimators.gt_oracle import FLOOR_R_DEG, FLOOR_T_M, GtOracleEstimator
 from flextrack import wire
 from flextrack.evaluation import nees_calibration as nc
 from flextrack.formats import sequence as sequence_io
@@ -36,7 +36,7 @@ def test_gt_oracle_exact_answers_carry_the_floor(orbit):
     out = oracle.estimate(EstimateInput(frame_id=0, capture_time_ns=int(orbit.frame_times_ns[0])))
     assert out.status is Status.OK
     assert_spd(out.covariance)
-    assert np.allclose(np.sqrt(np.diag(out.covariance)), [np.radians(0.01)] * 3 + [5e-5] * 3)
+    assert np.allclose(np.sqrt(np.diag(out.covariance)), [np.radians(FLOOR_R_DEG)] * 3 + [FLOOR_T_M] * 3)
 
 
 def test_gt_oracle_noisy_answers_are_calibrated(orbit):

@@ -248,7 +248,7 @@ class FilterTracker(TrackerBase):
         if self._anchor is None:
             return self._initializing_frame(t)
         t_imu = self._imu_time(t)
-        st = self._nominal_at(t_imu)
+        st = self._full_at(t_imu)  # the covariance propagated to the frame, not the sample before it
         T_CO = self._eased(self._T_CO(st.x), t)
         cov = self._pose_covariance(st, t_imu)
         status, detail = Status.FINE, "tracking"
