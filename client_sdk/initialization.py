@@ -15,6 +15,7 @@ import numpy as np
 
 from client_sdk.imu_buffer import ImuBuffer
 from client_sdk.options import TrackerOptions
+from flextrack.autocorrelation import standard_error_of_mean
 
 
 @dataclass(frozen=True)
@@ -24,6 +25,8 @@ class InitEstimate:
     gyro_std: float  # RMS deviation from the mean over the window, rad/s
     accel_std: float  # m/s^2
     still: bool
+    gyro_mean_std: float = float("inf")  # standard error of the mean gyro (the bias), per axis, rad/s
+    accel_mean_std: float = float("inf")  # the same of the mean specific force, m/s^2
 
 
 def estimate(samples: list[tuple], options: TrackerOptions) -> InitEstimate:
@@ -33,7 +36,8 @@ def estimate(samples: list[tuple], options: TrackerOptions) -> InitEstimate:
     gyro_std = float(np.sqrt(((a[:, 0:3] - mean[0:3]) ** 2).sum(axis=1).mean()))
     accel_std = float(np.sqrt(((a[:, 3:6] - mean[3:6]) ** 2).sum(axis=1).mean()))
     still = gyro_std < options.still_gyro_std and accel_std < options.still_accel_std
-    return InitEstimate(-mean[3:6], mean[0:3], gyro_std, accel_std, still)
+    return InitEstimate(-mean[3:6], mean[0:3], gyro_std, accel_std, still, standard_error_of_mean(a[:, 0:3]),
+                        standard_error_of_mean(a[:, 3:6]))
 
 
 def assess(buffer: ImuBuffer, t_ns: int, options: TrackerOptions) -> tuple[InitEstimate | None, str]:

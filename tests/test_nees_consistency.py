@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from flextrack.evaluation.consistency import autocorrelation_time, nees_mean_interval
+from flextrack.autocorrelation import autocorrelation_time
+from flextrack.evaluation.consistency import nees_mean_interval
 
 
 def correlated_nees(rng, n, phi, scale=1.0):

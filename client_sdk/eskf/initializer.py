@@ -1,7 +1,8 @@
 """The filter's first state: the first backend pose, gravity and gyro bias from the IMU window before it.
 
 A still window measures gravity in the body frame (minus the mean accelerometer) and the gyro bias
-(the mean gyro) well. A moving one still gives gravity's direction: carried back from the pose by
+(the mean gyro) to the standard errors of those means (0.5 s at 200 Hz: ~0.001 m/s^2 and ~0.1 mrad/s
+for a still phone, 5-10x that on EuRoC's vibrating drone), above small floors. A moving one still gives gravity's direction: carried back from the pose by
 the gyro, the specific forces average to -g_O over a window in which the device's own acceleration
 averages out (hand motion: ~0.1-0.3 m/s^2 over half a second), so the filter starts from that with
 an honest uncertainty (`init_gravity_std`, its norm standard gravity's) and the answers that follow refine it. Velocity
@@ -43,7 +44,11 @@ def initial_state(x_pose: tuple, T_CO_sigma: np.ndarray, window: list[tuple], R_
     if est.still:
         b_g = tuple(est.b_g.tolist())
         g_O = np.array(R_OB).reshape(3, 3) @ est.g_B
-        g_std, v_std, bg_std = options.still_gravity_std, 0.02, max(est.gyro_std, 1e-3)
+        # the window's means are known to their standard errors (samples counted as independent only as far
+        # as their autocorrelation allows: tremor, vibration); the floors stand for slow motion none shows
+        g_std = max(est.accel_mean_std, options.still_gravity_std)
+        bg_std = max(est.gyro_mean_std, options.still_gyro_bias_std)
+        v_std = 0.02
     else:
         b_g = (0.0, 0.0, 0.0)
         g_O = _gravity_from_motion(R_OB, window, b_g)
