@@ -75,11 +75,13 @@ class FilterOptions:
     from the next one."""
 
     # --- What a frame shows ---
-    ease_s: float = 0.03
+    ease_s: float = 0.02
     """Time constant (s) over which a correction's jump of the shown pose is eased in (0: at once), and
     at least `ease_min_frames` frame intervals. The filter's state takes each answer at once; only the
-    pose a frame reports glides, trading a little accuracy for less visible shake."""
-    ease_min_frames: float = 2.0
+    pose a frame reports glides, trading a little accuracy for less visible shake. On the noisy oracle
+    (circular medium, 60 FPS, 3 seeds): at once 1.085 px and jitter 0.27 px; these defaults 1.097 px and
+    0.17 px; 30 ms and 2 frames 1.104 px and 0.15 px."""
+    ease_min_frames: float = 1.5
 
     # --- Status from the covariance ---
     max_sigma_px: float = 6.0
