@@ -69,6 +69,8 @@ class FilterTracker(TrackerBase):
         self._prop = CovariancePropagator(fo)
         self._default_sigma = np.diag([(fo.default_rotation_std_deg * _DEG) ** 2] * 3
                                       + [fo.default_translation_std_m ** 2] * 3)
+        self._answer_floor = np.diag([(fo.answer_floor_rotation_deg * _DEG) ** 2] * 3
+                                     + [fo.answer_floor_translation_m ** 2] * 3)
         self._buf = ImuBuffer(round(o.imu_buffer_s * 1e9))
         self._anchor: tuple[int, FilterState] | None = None  # the state set by the last answer, at its time
         self._td = fo.time_offset_s
@@ -320,6 +322,7 @@ class FilterTracker(TrackerBase):
         if sigma is None or not fo.use_backend_covariance:
             note = "" if sigma is not None else " (no covariance from the backend: the default used)"
             sigma = self._default_sigma
+        sigma = sigma + self._answer_floor
         tau = self._imu_time(t0)
         buf = self._buf
         if not len(buf) or tau < buf.first_t_ns or (self._anchor is not None and self._base_at(tau) is None):
