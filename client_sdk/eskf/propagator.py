@@ -7,7 +7,7 @@ Continuous-time error dynamics, with w = w_m - b_g and a = a_m - b_a (body frame
     d_bg'    = n_wg        d_ba' = n_wa         d_g' = 0       d_td' = 0
 
 discretised to first order, Phi = I + A dt, Q = diag(sigma^2 dt) with Kalibr's densities. The 36
-non-trivial entries of Phi are written with one `np.put`: the whole step costs a few microseconds,
+non-trivial entries of Phi are written with one indexed assignment: the whole step costs a few microseconds,
 two 19x19 products included.
 """
 
@@ -97,7 +97,7 @@ class CovariancePropagator:
         values = ([1.0, w2, -w1, -w2, 1.0, w0, w1, -w0, 1.0, -dt, -dt, -dt, dt, dt, dt] + m
                   + [-e * dt for e in r] + [dt, dt, dt])
         phi = self._phi
-        np.put(phi, _PHI_INDEX, values)
+        phi.ravel()[_PHI_INDEX] = values  # a view: ~1 us less than np.put with a list
         return phi
 
     def step(self, cov: np.ndarray, x: tuple, c: tuple, t0_ns: int, t1_ns: int, s0: tuple, s1: tuple) -> np.ndarray:
@@ -111,5 +111,5 @@ class CovariancePropagator:
         out = phi @ cov @ phi.T
         if self._q_dt[0] != dt:
             self._q_dt = (dt, self._q_density * dt)
-        out.flat[_Q_INDEX] += self._q_dt[1]
+        out.ravel()[_Q_INDEX] += self._q_dt[1]
         return out
