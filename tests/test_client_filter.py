@@ -151,3 +151,27 @@ def test_imu_noise_is_raised_to_what_a_vibrating_imu_shows_and_never_lowered():
     assert g >= gyro_density and a >= accel_density
     g, a = shaking.tracker.imu_noise_densities
     assert 15 * gyro_density < g < 25 * gyro_density and 15 * accel_density < a < 25 * accel_density
+
+
+def test_the_noise_estimate_is_what_the_midpoint_integrator_sees_vibration_near_nyquist_cancels():
+    """White noise is read at its density; a 95 Hz vibration at 200 Hz, which the integrator's means of
+    consecutive samples cancel, is read at a fifth of what raw second differences make of it."""
+    from client_sdk.eskf.propagator import CovariancePropagator
+
+    fo = FilterOptions()
+    rng = np.random.default_rng(4)
+    t = np.arange(4000) * 5_000_000
+    white = CovariancePropagator(fo)
+    vibrating = CovariancePropagator(fo)
+    sigma_g, sigma_a = 10 * IMU_NOISE["gyro_sigma"], 10 * IMU_NOISE["accel_sigma"]
+    for k, tk in enumerate(t):
+        n = rng.standard_normal(6)
+        white.observe((int(tk), *(sigma_g * n[:3]), *(9.81 + sigma_a * n[3:])))
+        v = 0.5 * np.sin(2 * np.pi * 95.0 * tk * 1e-9)  # m/s^2 and rad/s
+        vibrating.observe((int(tk), v, v, v, 9.81 + v, v, v))
+    g, a = white.densities
+    assert g == pytest.approx(10 * fo.gyroscope_noise_density, rel=0.15)
+    assert a == pytest.approx(10 * fo.accelerometer_noise_density, rel=0.15)
+    g, a = vibrating.densities
+    raw_accel = 0.5 * (2 - 2 * np.cos(2 * np.pi * 95 / 200)) / np.sqrt(2) / np.sqrt(6 * 200)  # second-difference reading
+    assert a < 0.3 * raw_accel  # 0.19 of it

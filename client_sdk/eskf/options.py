@@ -25,9 +25,9 @@ class FilterOptions:
     noise_inflation: float = 1.0
     """Multiplies the IMU densities above (> 1 when a yaml's lab figures understate the sensor in use)."""
     adapt_imu_noise: bool = True
-    """Raise the white-noise densities to what the IMU shows in use (the second differences of its samples
-    over the last `noise_window_samples`), never lower them: a yaml's lab figures and a vibrating
-    device differ by 10-50x (EuRoC's drone)."""
+    """Raise the white-noise densities to what the IMU shows in use (the second differences of the means of
+    consecutive samples, which the midpoint integrator uses, over the last `noise_window_samples`), never
+    lower them: a yaml's lab figures and a vibrating device differ by 8-21x (EuRoC's drone)."""
     noise_window_samples: int = 200
     """The running estimate's memory, samples (1 s at 200 Hz)."""
 

@@ -48,7 +48,7 @@ class CovariancePropagator:
         self._adapt = options.adapt_imu_noise
         self._alpha = 1.0 / max(options.noise_window_samples, 1)
         self._n2 = [0.0, 0.0]  # running estimate of the squared white-noise density, gyro and accel
-        self._last: tuple = (None, None)  # the two samples before the next
+        self._last: tuple = (None, None, None)  # the three samples before the next
         self._seen = 0
         self._phi = _IDENTITY.copy()
         self._set_q(*self._densities)
@@ -59,23 +59,27 @@ class CovariancePropagator:
                                    + [self._walks[1] ** 2] * 3)
 
     def observe(self, sample: tuple) -> None:
-        """Take in one new IMU sample. White noise of density n at rate r makes the second difference
-        s[k+1] - 2 s[k] + s[k-1] of consecutive samples 6 n^2 r in mean square per axis, and smooth
-        motion adds next to nothing to it (a simulated Pixel 2 reads 1.00-1.01x its yaml); a vibrating
-        device (a drone's rotors: EuRoC reads 16x gyro, 45x accelerometer) shows far more than its
-        datasheet's n, and the filter must believe it."""
+        """Take in one new IMU sample. The noise that matters is what the midpoint integrator sees: the
+        means m[k] = (s[k] + s[k+1]) / 2 of consecutive samples. White noise of density n at rate r
+        makes their second difference m[k+1] - 2 m[k] + m[k-1] = (s[k+2] - s[k+1] - s[k] + s[k-1]) / 2
+        n^2 r in mean square per axis, smooth motion adds next to nothing to it (a simulated Pixel 2
+        reads 1.00-1.01x its yaml), and vibration near the Nyquist rate, which the means cancel, adds
+        little (EuRoC's drone: 8x the gyro's yaml density, 21x the accelerometer's, where raw second
+        differences read 16x and 45x). A vibrating device still shows far more than its datasheet's
+        n, and the filter must believe it."""
         if not self._adapt:
             return
-        s0, s1, self._last = self._last[0], self._last[1], (self._last[1], sample)
+        s0, s1, s2 = self._last
+        self._last = (s1, s2, sample)
         if s0 is None:
             return
-        dt = (sample[0] - s0[0]) * NS * 0.5
+        dt = (sample[0] - s0[0]) * NS / 3.0
         if dt <= 0:
             return
         a, n2 = self._alpha, self._n2
-        d = [sample[i] - 2.0 * s1[i] + s0[i] for i in range(1, 7)]
-        n2[0] += a * ((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) * dt / 18.0 - n2[0])  # -> n^2 (mean of 3 axes / 6)
-        n2[1] += a * ((d[3] * d[3] + d[4] * d[4] + d[5] * d[5]) * dt / 18.0 - n2[1])
+        d = [sample[i] - s2[i] - s1[i] + s0[i] for i in range(1, 7)]  # twice the means' second difference
+        n2[0] += a * ((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) * dt / 12.0 - n2[0])  # -> n^2 (mean of 3 axes)
+        n2[1] += a * ((d[3] * d[3] + d[4] * d[4] + d[5] * d[5]) * dt / 12.0 - n2[1])
         self._seen += 1
         if self._seen % _Q_EVERY == 0:  # Q follows the estimate ten times a second, not every sample
             self._set_q(max(self._densities[0], n2[0] ** 0.5), max(self._densities[1], n2[1] ** 0.5))
