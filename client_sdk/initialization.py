@@ -25,8 +25,8 @@ class InitEstimate:
     gyro_std: float  # RMS deviation from the mean over the window, rad/s
     accel_std: float  # m/s^2
     still: bool
-    gyro_mean_std: float = float("inf")  # standard error of the mean gyro (the bias), per axis, rad/s
-    accel_mean_std: float = float("inf")  # the same of the mean specific force, m/s^2
+    gyro_mean_std: float  # standard error of the mean gyro (the bias), per axis, rad/s
+    accel_mean_std: float  # the same of the mean specific force, m/s^2
 
 
 def estimate(samples: list[tuple], options: TrackerOptions) -> InitEstimate:

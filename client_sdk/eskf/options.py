@@ -27,7 +27,7 @@ class FilterOptions:
     adapt_imu_noise: bool = True
     """Raise the white-noise densities to what the IMU shows in use (the second differences of the means of
     consecutive samples, which the midpoint integrator uses, over the last `noise_window_samples`), never
-    lower them: a yaml's lab figures and a vibrating device differ by 8-21x (EuRoC's drone)."""
+    lower them: a yaml's lab figures and a vibrating device differ by an order of magnitude (EuRoC's drone)."""
     noise_window_samples: int = 200
     """The running estimate's memory, samples (1 s at 200 Hz)."""
 
@@ -46,8 +46,9 @@ class FilterOptions:
     """m/s^2, the least uncertainty of gravity from a still window; above it, the standard error of the
     window's mean specific force (`initialization.InitEstimate`), beside the errors gravity shares with
     the first pose's orientation and the accelerometer bias (modelled as correlations). An over-cautious
-    start lets the first noisy answers pull gravity and the gyro bias off (circular medium, 3 seeds:
-    1.14 px with a fixed 0.03 m/s^2 and 1 mrad/s, 1.10 px with the standard errors)."""
+    start lets the first noisy answers pull gravity and the gyro bias off (`flextrack experiment filter
+    --seeds 3`, circular medium: 1.14 px at 84fe2b1 with a fixed 0.03 m/s^2 and 1 mrad/s, 1.10 px at
+    c9ddc64 with the standard errors and the ease below)."""
     still_gyro_bias_std: float = 1e-4
     """rad/s, the least uncertainty of the gyro bias from a still window; above it, the standard error of
     the window's mean gyro."""
@@ -71,8 +72,8 @@ class FilterOptions:
     """Per axis, added in quadrature to every answer's covariance: how closely the filter's own model
     (first-order covariance, midpoint integration at the IMU rate) can follow a pose between answers.
     An answer that claims more (an exact oracle's micrometres) would otherwise be gated on fast motion
-    and the filter re-initialised again and again (circular hard at 120 FPS, answers claiming 5 um:
-    108 re-initialisations, 7 px)."""
+    and the filter re-initialised again and again (`tests/test_runner_replay.py`: circular hard at
+    120 FPS)."""
     answer_floor_translation_m: float = 1e-5
     """Per axis, likewise."""
     gate_chi2: float = 22.46
@@ -86,9 +87,8 @@ class FilterOptions:
     ease_s: float = 0.02
     """Time constant (s) over which a correction's jump of the shown pose is eased in (0: at once), and
     at least `ease_min_frames` frame intervals. The filter's state takes each answer at once; only the
-    pose a frame reports glides, trading a little accuracy for less visible shake. On the noisy oracle
-    (circular medium, 60 FPS, 3 seeds): at once 1.085 px and jitter 0.27 px; these defaults 1.097 px and
-    0.17 px; 30 ms and 2 frames 1.104 px and 0.15 px."""
+    pose a frame reports glides, trading a little accuracy for less visible shake (with these defaults,
+    jitter 0.17 px on the peer cells of `flextrack experiment filter`)."""
     ease_min_frames: float = 1.5
 
     # --- Status from the covariance ---

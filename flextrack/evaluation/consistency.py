@@ -3,8 +3,8 @@
 Consecutive frames of one run share the filter's state, so their NEES values are correlated: the mean
 of N of them varies as much as the mean of N / tau independent ones, tau being the series' integrated
 autocorrelation time. The 95 % interval of the mean is then that of chi-square(dof * n_eff) / n_eff with
-n_eff = N / tau (`flextrack.autocorrelation`). With
-independent frames n_eff = N and this is the usual interval.
+n_eff = N / tau (`flextrack.autocorrelation`). With independent frames n_eff = N and this is the usual
+interval.
 """
 
 from __future__ import annotations

@@ -81,20 +81,19 @@ def converted(out: Path, data: Path, fps: float, object_scale: float, object_dis
     """The sequence folder converted from `data` with these options: made once, then reused while neither the
     data's files (names, sizes, modification times), the options nor the converter's code change."""
     from flextrack.simulator import euroc_convert
-    from flextrack.simulator.euroc_convert import _source_name, convert_euroc
 
     files = sorted((str(p.relative_to(data)), p.stat().st_size, p.stat().st_mtime_ns)
                    for p in data.rglob("*") if p.is_file())
     key = hashlib.sha256(json.dumps([files, fps, object_scale, object_distance_m, object_position]).encode())
     # the name is the sequence's identity (the Noisy oracle's draws are keyed by it): the code's hash is kept
     # beside it, so that a changed converter remakes the folder without changing the draws
-    root = out / "sequences" / f"{_source_name(data)}_{fps:g}fps_x{object_scale:g}_{key.hexdigest()[:12]}"
+    root = out / "sequences" / f"{euroc_convert._source_name(data)}_{fps:g}fps_x{object_scale:g}_{key.hexdigest()[:12]}"
     code = hashlib.sha256(Path(euroc_convert.__file__).read_bytes()).hexdigest()
     stamp = root / "converter.sha256"
     if not (root / "rig.yaml").is_file() or not stamp.is_file() or stamp.read_text() != code:
         if root.exists():
             shutil.rmtree(root)
-        convert_euroc(data, root, fps=fps, object_scale=object_scale, object_distance_m=object_distance_m,
+        euroc_convert.convert_euroc(data, root, fps=fps, object_scale=object_scale, object_distance_m=object_distance_m,
                       object_position=object_position)
         stamp.write_text(code)
     if not (root / "plots" / "trajectory.png").is_file():  # the camera path and the object's place, drawn
