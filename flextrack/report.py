@@ -199,6 +199,40 @@ def render_filter(folder: Path) -> str:
         f"`{RESULTS_DIR.as_posix()}/{folder.name}/`."])
 
 
+@section("bound")
+def render_bound(folder: Path) -> str:
+    """The Noisy Table 2 cells beside their Riccati bound (flextrack experiment bound)."""
+    from flextrack.experiments.bound import LIMIT_PX, SETTLE_S
+
+    rows = read_csv(folder / "bound.csv")
+    prov = read_provenance(folder / "bound.json")
+    seeds = prov.get("options", {}).get("seed_list", [])
+    columns = ("proj_px_all", "proj_px", "predicted_px", "bound_px")
+    lines = ["| cell | FPS | measured, all frames | measured | predicted | bound | measured / bound |",
+             "|---|---|---|---|---|---|---|"]
+    means = []
+    for key in dict.fromkeys((r["motion"], r["level"], r["fps"]) for r in rows):
+        sel = [r for r in rows if (r["motion"], r["level"], r["fps"]) == key]
+        m = [float(np.mean([_num(r[c]) for r in sel])) for c in columns]
+        means.append(m)
+        lines.append(f"| {key[0]} {key[1]} | {_num(key[2]):g} | {m[0]:.2f} | {m[1]:.2f} | {m[2]:.2f} | **{m[3]:.2f}** | "
+                     f"{m[1] / m[3]:.2f} |")
+    a = np.array(means)
+    runs = np.array([[_num(r[c]) for c in columns] for r in rows])
+    return "\n".join([
+        (f"The Noisy cells of Table 2 (seeds {', '.join(map(str, seeds))}, means over seeds), mean 2D error in px over the frames from "
+         f"{SETTLE_S:g} s after the first (the first column: all frames, Table 2's figure). *measured*: the filter; "
+         "*predicted*: the error its own covariances predict; *bound*: the Riccati bound, the expected error of the "
+         "Kalman filter linearised at the truth on the same answer times (the least any estimator that takes the "
+         "motion from the IMU can reach on average; `flextrack/experiments/bound.py`)."),
+        "", *lines, "",
+        (f"The bound is above {LIMIT_PX:g} px in {int((a[:, 3] > LIMIT_PX).sum())} of {len(a)} cells. Over all runs "
+         f"measured / bound is {runs[:, 1].mean() / runs[:, 3].mean():.3f} (per run "
+         f"{_range(runs[:, 1] / runs[:, 3])}) and predicted / bound {runs[:, 2].mean() / runs[:, 3].mean():.3f}."),
+        "", provenance_line(prov, f"flextrack experiment bound --seeds {len(seeds)} --out out/bound") + " Files: "
+        f"`{RESULTS_DIR.as_posix()}/{folder.name}/`."])
+
+
 @section("euroc")
 def render_euroc(folder: Path) -> str:
     """The real-IMU experiment (EuRoC V1_02, a virtual object, the noisy oracle)."""

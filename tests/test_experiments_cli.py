@@ -115,3 +115,18 @@ def test_filter_checks_write_the_peer_cells_with_provenance(tmp_path, capsys):
     record = json.loads((out / "filter.json").read_text())["provenance"]
     assert record["options"]["seeds"] == [0] and record["date"] and "dirty" in record
     assert "Peer cells" in capsys.readouterr().out
+
+
+def test_bound_puts_the_filter_beside_the_riccati_bound(tmp_path, capsys):
+    out = tmp_path / "bound"
+    assert main(["experiment", "bound", "--out", str(out), "--duration", "8", "--fps", "30", "--in-process"]) == 0
+    rows = _csv(out / "bound.csv")
+    assert list(rows[0]) == ["motion", "level", "fps", "seed", "proj_px_all", "proj_px", "predicted_px", "bound_px",
+                             "nees_mean"]
+    assert len(rows) == 6
+    for r in rows:
+        bound, predicted = float(r["bound_px"]), float(r["predicted_px"])
+        assert 0.3 < bound < 3.0
+        # the filter's covariances are the Riccati solution: on the noisy run they say what the bound says
+        assert predicted == pytest.approx(bound, rel=0.1)
+    assert "Riccati bound" in capsys.readouterr().out

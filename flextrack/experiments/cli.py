@@ -1,5 +1,5 @@
-"""`flextrack experiment table2|ablation|timing|euroc|filter --out DIR`: the paper's experiments, rerun,
-and the error-state filter's own checks.
+"""`flextrack experiment table2|ablation|timing|euroc|filter|bound --out DIR`: the paper's experiments,
+rerun, and the error-state filter's own checks and bound.
 
 Each writes a Markdown report, CSV tables, PNG plots and TUM trajectories under DIR, and `NAME.json`
 with the run's provenance (flextrack.provenance: options, seeds, commit, dirty, host, date).
@@ -18,17 +18,17 @@ from flextrack.experiments import paper
 from flextrack.provenance import of_args
 from flextrack.simulator.euroc_cli import xyz
 
-EXPERIMENTS = ("table2", "ablation", "timing", "euroc", "filter")
+EXPERIMENTS = ("table2", "ablation", "timing", "euroc", "filter", "bound")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("experiment", choices=EXPERIMENTS)
     parser.add_argument("--out", type=Path, required=True, help="output folder")
-    parser.add_argument("--seeds", type=int, default=1, help="table2, filter: number of seeds (0..N-1)")
+    parser.add_argument("--seeds", type=int, default=1, help="table2, filter, bound: number of seeds (0..N-1)")
     parser.add_argument("--seed", type=int, default=0, help="ablation, timing, euroc: the seed")
     parser.add_argument("--duration", type=float, default=30.0, help="seconds of motion per simulated sequence")
     parser.add_argument("--fps", type=float, nargs="+",
-                        help=f"table2: frame rates among {list(paper.FPS)} (all four unless given; 30 and 120 with "
+                        help=f"table2, bound: frame rates among {list(paper.FPS)} (all four unless given; 30 and 120 with "
                         f"--backend); euroc: the one frame rate (default: {paper.EUROC_FPS:g}, the paper's real-data rate)")
     parser.add_argument("--in-process", action="store_true", help="call the backend in-process instead of gRPC")
     parser.add_argument("--backend", default="oracles",
@@ -67,13 +67,22 @@ def custom_tracker(args):
 
 
 def run(args) -> int:
-    from flextrack.experiments import ablation, euroc, filter_checks, table2, table2_vision, timing  # the sim extra
+    from flextrack.experiments import (  # the sim extra
+        ablation,
+        bound,
+        euroc,
+        filter_checks,
+        table2,
+        table2_vision,
+        timing,
+    )
     from flextrack.runners.cli_checks import out_folder_problem
     from flextrack.runners.scoring import NothingScored
 
     problem = out_folder_problem(args.out)
-    if args.experiment == "table2" and args.fps and not set(args.fps) <= set(paper.FPS):
-        problem = f"table2 --fps: choose among {list(paper.FPS)}, got {[f'{f:g}' for f in args.fps]}"
+    grid = args.experiment in ("table2", "bound")
+    if grid and args.fps and not set(args.fps) <= set(paper.FPS):
+        problem = f"{args.experiment} --fps: choose among {list(paper.FPS)}, got {[f'{f:g}' for f in args.fps]}"
     if args.experiment == "euroc" and args.fps and len(args.fps) != 1:
         problem = "euroc --fps: give one frame rate"
     if (args.preset or args.set) and args.experiment != "euroc":
@@ -83,15 +92,17 @@ def run(args) -> int:
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
-    seed_list = list(range(args.seeds)) if args.experiment == "table2" else [args.seed]
+    seed_list = list(range(args.seeds)) if grid or args.experiment == "filter" else [args.seed]
     record = of_args(args, command="flextrack experiment " + args.experiment, seed_list=seed_list)  # at the start
-    fps = tuple(int(f) for f in args.fps) if args.fps and args.experiment == "table2" else None
+    fps = tuple(int(f) for f in args.fps) if args.fps and grid else None
     try:
         if args.experiment == "table2" and args.backend != "oracles":
             table2_vision.run(args.out, args.backend, list(range(args.seeds)), args.duration, fps or (30, 120),
                               config=args.config or table2_vision.DEFAULT_CONFIG, backend_ms=args.backend_ms)
         elif args.experiment == "table2":
             table2.run(args.out, list(range(args.seeds)), args.duration, args.in_process, fps or paper.FPS)
+        elif args.experiment == "bound":
+            bound.run(args.out, list(range(args.seeds)), args.duration, args.in_process, fps or paper.FPS)
         elif args.experiment == "ablation":
             ablation.run(args.out, args.seed, args.duration, in_process=args.in_process)
         elif args.experiment == "filter":

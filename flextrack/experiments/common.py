@@ -60,12 +60,14 @@ def simulated(cache: Path, spec: SimSpec) -> Sequence:
 
 
 class OracleBackend:
-    """"gt" and "noisy" oracles behind a real gRPC server (or in-process), learning sequences on the way."""
+    """"gt" and "noisy" oracles (and any `extra` ones) behind a real gRPC server (or in-process), learning
+    sequences on the way."""
 
-    def __init__(self, noise_seed: int, in_process: bool = False):
+    def __init__(self, noise_seed: int, in_process: bool = False, extra: tuple[GtOracleEstimator, ...] = ()):
         self.gt = GtOracleEstimator("gt")
         self.noisy = GtOracleEstimator("noisy", noise_t_m=NOISY_T_M, noise_r_deg=NOISY_R_DEG, seed=noise_seed)
-        self.registry = EstimatorRegistry([self.gt, self.noisy], default="gt")
+        self.oracles = (self.gt, self.noisy, *extra)
+        self.registry = EstimatorRegistry(self.oracles, default="gt")
         self.in_process = in_process
         self._server = None
 
@@ -81,7 +83,7 @@ class OracleBackend:
             self._server.stop()
 
     def learn(self, seq: Sequence) -> None:
-        for oracle in (self.gt, self.noisy):
+        for oracle in self.oracles:
             if seq.name not in oracle.sequences:
                 oracle.add_sequence(seq.root, seq.name)
 
