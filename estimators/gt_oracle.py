@@ -7,13 +7,13 @@ whatever order or thread its requests arrive in.
 
 Every pose carries its covariance in the wire convention (flextrack.wire): the noise is drawn as
 R = Exp(dr) R_true, t = t_true + dt with dr ~ N(0, noise_r^2 I), dt ~ N(0, noise_t^2 I), so the
-error e = (-dr, -dt) has covariance diag(noise_r^2 x3, noise_t^2 x3) exactly. A floor
-(`floor_r_deg`, `floor_t_m`, default 0.0001 deg and 2 um per axis) is added in quadrature so that
-the exact oracle's matrix stays positive definite and its interpolated poses between frames, a few
-micrometres off, are not claimed exact. It claims no more than that: how closely a tracker can use
-such answers is the tracker's business (the filter adds its own floor, `FilterOptions.answer_floor_*`);
-a floor five times the oracle's real error (0.01 deg, 0.05 mm, before) made the filter's covariance
-on Table 2's GT cells twice its real error (mean NEES 3.1-3.7 for 6).
+error e = (-dr, -dt) has covariance diag(noise_r^2 x3, noise_t^2 x3) exactly. A floor is added in
+quadrature: at a frame's own time the ground truth is the pose, and the floor (`floor_r_deg`,
+`floor_t_m`, default 1e-6 deg and 10 nm per axis) only keeps the matrix positive definite; between
+frames the pose is interpolated, a few micrometres off on fast motion, and `INTERPOLATED_R_DEG`,
+`INTERPOLATED_T_M` (1e-4 deg, 2 um) are added too. It claims no more than that: how closely a tracker can
+use such answers is the tracker's business (the filter's update allows for the time offset's products
+with the rates it multiplies, which is what precise answers need, `client_sdk.eskf.pose_update`).
 """
 
 from __future__ import annotations
@@ -58,7 +58,8 @@ def sequence_folders(root: str | Path) -> list[Path]:
         raise FileNotFoundError(f"sequence root {root} does not exist")
     return sorted(p for p in root.iterdir() if (p / "rig.yaml").is_file())
 
-FLOOR_R_DEG, FLOOR_T_M = 1e-4, 2e-6  # per axis, in quadrature (module doc)
+FLOOR_R_DEG, FLOOR_T_M = 1e-6, 1e-8  # per axis, in quadrature (module doc)
+INTERPOLATED_R_DEG, INTERPOLATED_T_M = 1e-4, 2e-6  # per axis, in quadrature too, between frames
 
 
 class GtOracleEstimator(Estimator):
@@ -79,10 +80,13 @@ class GtOracleEstimator(Estimator):
         self.noise_t_m = float(noise_t_m)
         self.noise_r_rad = float(np.radians(noise_r_deg))
         self.seed = int(seed)
-        # one matrix for every answer (built once: this runs per request on the service's event loop)
+        # one matrix at frames and one between them (built once: this runs per request on the event loop)
         self.covariance = wire.diagonal_covariance(float(np.hypot(self.noise_r_rad, np.radians(floor_r_deg))),
                                                    float(np.hypot(self.noise_t_m, floor_t_m)))
-        self.covariance.setflags(write=False)
+        self.covariance_interpolated = self.covariance + wire.diagonal_covariance(np.radians(INTERPOLATED_R_DEG),
+                                                                                  INTERPOLATED_T_M)
+        for matrix in (self.covariance, self.covariance_interpolated):
+            matrix.setflags(write=False)
         self._sequences: dict[str, _GroundTruth] = {}
         for root in sequence_roots:
             for folder in sequence_folders(root):
@@ -118,17 +122,17 @@ class GtOracleEstimator(Estimator):
             raise UnknownSequence(f"estimator '{self.name}' has no sequence '{name}'; loaded: {self.sequences}")
         return name, self._sequences[name]
 
-    def _pose_at(self, gt: _GroundTruth, t_ns: int) -> np.ndarray | None:
-        """Interpolated T_CO, or None outside the table or next to a frame without ground truth."""
+    def _pose_at(self, gt: _GroundTruth, t_ns: int) -> tuple[np.ndarray | None, bool]:
+        """(T_CO, at a frame's own time): None outside the table or next to a frame without ground truth."""
         times, has_gt = gt.frame_times_ns, gt.has_gt
         i = int(np.searchsorted(times, t_ns, side="right")) - 1
         if i < 0 or t_ns > times[-1]:
-            return None
+            return None, False
         if times[i] == t_ns:  # a frame's own time: the common case in replays, kept cheap
-            return gt.poses[i].copy() if has_gt[i] else None
+            return (gt.poses[i].copy() if has_gt[i] else None), True
         if not (has_gt[i] and has_gt[i + 1]):
-            return None
-        return se3.interpolate_at(times[i:i + 2], gt.poses[i:i + 2], t_ns)
+            return None, False
+        return se3.interpolate_at(times[i:i + 2], gt.poses[i:i + 2], t_ns), False
 
     def _noise(self, sequence: str, object_id: str, t_ns: int) -> np.ndarray:
         """A pose perturbation that depends only on (seed, sequence, object, time)."""
@@ -144,7 +148,7 @@ class GtOracleEstimator(Estimator):
         if object_id != gt.object_id:
             self.resolve_object(object_id)  # unknown anywhere: UnknownObject
             return EstimateOutput.not_found(f"object '{object_id}' is not in sequence '{name}'")
-        T_CO = self._pose_at(gt, inp.capture_time_ns)
+        T_CO, at_frame = self._pose_at(gt, inp.capture_time_ns)
         if T_CO is None:
             return EstimateOutput.not_found(f"no ground truth of '{object_id}' in '{name}' at {inp.capture_time_ns} ns")
         camera = inp.camera or gt.camera
@@ -157,4 +161,5 @@ class GtOracleEstimator(Estimator):
         if self.noise_t_m or self.noise_r_rad:
             N = self._noise(name, object_id, inp.capture_time_ns)
             T_CO = se3.make(N[:3, :3] @ T_CO[:3, :3], T_CO[:3, 3] + N[:3, 3])
-        return EstimateOutput(Status.OK, T_CO, 1.0, covariance=self.covariance)
+        return EstimateOutput(Status.OK, T_CO, 1.0,
+                              covariance=self.covariance if at_frame else self.covariance_interpolated)

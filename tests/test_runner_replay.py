@@ -106,9 +106,11 @@ def test_batched_projection_error_matches_the_per_frame_metric():
 
 
 def test_a_backend_claiming_micrometres_does_not_break_the_filter_on_fast_motion(tmp_path):
-    """An exact oracle that claims 1e-6 deg and 10 nm: on 30 s of circular hard at 120 FPS the filter without
-    its own answer floor (FilterOptions.answer_floor_*) gated the answers its discretisation could not follow
-    and re-initialised over and over (6.5 px, mean NEES 7000); with the floor it tracks to hundredths of a px."""
+    """An exact oracle that claims 1e-6 deg and 10 nm: on 30 s of circular hard at 120 FPS the filter, before
+    its update allowed for the time offset's products with the rates (and held the offset while the still
+    start cannot show it), pulled the offset 20 ms off during the still start, gated the first moving answers
+    and re-initialised over and over (6.5 px, mean NEES 7000). Now it tracks to hundredths of a px and its
+    NEES is chi-square's."""
     from estimators.gt_oracle import GtOracleEstimator
     from estimators.registry import EstimatorRegistry
 
@@ -119,5 +121,5 @@ def test_a_backend_claiming_micrometres_does_not_break_the_filter_on_fast_motion
     s = replay(seq, InProcessBackend(registry, options.network), session.model_vertices(seq), TrackerOptions(),
                options).summarize()
     assert s.proj_px < 0.1 and s.worst_fine_px < 0.5, s
-    assert s.nees_mean < 8.0, s
+    assert 5.0 < s.nees_mean < 7.0, s
     assert s.status_counts.get("WRONG_POSE", 0) == 0, s.status_counts

@@ -106,3 +106,21 @@ def test_any_frame_rate_and_cli(tmp_path, capsys):
     assert rc == 0 and "seen whole in" in capsys.readouterr().out
     rc = flextrack_main(["convert-euroc", "--euroc", str(tmp_path), "--out", str(tmp_path / "bad")])
     assert rc == 2 and "no EuRoC recording" in capsys.readouterr().err
+
+
+def test_the_converted_sequence_is_named_by_its_data_not_by_file_times(tmp_path):
+    """The name keys the Noisy oracle's draws: a copy of the same data, touched, must get the same draws
+    (and be converted again, since a changed file is not trusted)."""
+    import os
+    import shutil
+
+    from flextrack.experiments import euroc as experiment
+
+    data = tmp_path / "copy" / EUROC.name
+    shutil.copytree(EUROC, data)
+    first = experiment.converted(tmp_path / "out", data, 20.0, experiment.OBJECT_SCALE, None, None)
+    stamp = (first / "converter.sha256").read_text()
+    os.utime(data / "imu0.csv", ns=(1, 1))
+    again = experiment.converted(tmp_path / "out", data, 20.0, experiment.OBJECT_SCALE, None, None)
+    assert again == first
+    assert (again / "converter.sha256").read_text() != stamp  # remade

@@ -68,14 +68,6 @@ class FilterOptions:
     """Per axis, for answers that come without a covariance (documented default)."""
     default_translation_std_m: float = 0.01
     """Per axis, likewise."""
-    answer_floor_rotation_deg: float = 0.001
-    """Per axis, added in quadrature to every answer's covariance: how closely the filter's own model
-    (first-order covariance, midpoint integration at the IMU rate) can follow a pose between answers.
-    An answer that claims more (an exact oracle's micrometres) would otherwise be gated on fast motion
-    and the filter re-initialised again and again (`tests/test_runner_replay.py`: circular hard at
-    120 FPS)."""
-    answer_floor_translation_m: float = 1e-5
-    """Per axis, likewise."""
     gate_chi2: float = 22.46
     """An answer whose innovation's Mahalanobis distance squared exceeds this is rejected (chi-square,
     6 dof, 99.9 %)."""
@@ -109,7 +101,7 @@ class FilterOptions:
                 raise ValueError(f"filter option {f.name} must be a finite number >= 0 (|offset| < 1 s), "
                                  f"got {value!r}")
         for name in ("default_rotation_std_deg", "default_translation_std_m", "gate_chi2", "max_sigma_px",
-                     "noise_inflation"):  # the answer floors may be 0
+                     "noise_inflation"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"filter option {name} must be > 0")
         if self.noise_window_samples < 1:

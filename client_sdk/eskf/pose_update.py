@@ -10,9 +10,11 @@ is, to first order in the error state, r = H dx + n with
     H[:, d_theta] = ( -R_CB ; -[R_CO p_OB]x R_CB )     H[:, d_p] = ( 0 ; -R_CO )
     H[:, d_td]    = H[:, d_theta] w + H[:, d_p] v        (the pose at t + d_td)
 
-and n the backend's error, covariance Sigma. An answer whose r^T S^-1 r (S = H P H^T + Sigma)
-exceeds the chi-square gate is rejected; otherwise the Kalman gain, the Joseph-form covariance and
-the injection of K r into the nominal state.
+and n the backend's error, covariance Sigma, to which the second-order products of the time offset
+with the rates it multiplies are added (`offset_terms`; the offset is not corrected while the motion
+does not show it). An answer whose r^T S^-1 r (S = H P H^T + Sigma) exceeds the chi-square gate is
+rejected; otherwise the Kalman gain, the Joseph-form covariance and the injection of K r into the
+nominal state.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from client_sdk.eskf.state import TD, TH, FilterState, N, P, inject
+from client_sdk.eskf.state import BG, TD, TH, FilterState, N, P, V, inject
 from flextrack.geometry import so3
 
 _I = np.eye(N)
@@ -53,6 +55,30 @@ def pose_jacobian(x: tuple, R_CB: np.ndarray, w: tuple, v: tuple) -> tuple[np.nd
     return R_CO, Rp, H
 
 
+_U = np.r_[np.arange(N)[BG], np.arange(N)[V]]  # the error-state entries of the rates the offset multiplies
+
+
+def offset_terms(H: np.ndarray, cov: np.ndarray, w_var: float, ratio: float = 3.0) -> tuple[np.ndarray, bool]:
+    """What the first-order model leaves out between the time offset and the rates it multiplies, and
+    whether the motion shows the offset at all.
+
+    The pose at t + d_td moves by H_theta (w - d_w) d_td + H_p (v + d_v) d_td: beside H_td d_td, the
+    products B u d_td with u = (d_w, d_v), B = (-H_theta, H_p), of covariance B (P_uu P_tt + P_ut P_tu)
+    B^T (Gaussian errors; d_w is the bias's error plus one gyro sample's noise, variance `w_var`). That
+    is added to the answer's covariance. And while H_td is not `ratio` times larger than the
+    uncertainty of B u (a still device: w = v = 0), the offset is a consider state (Schmidt): in S, not
+    corrected. Without either, an exact answer pulled the offset to whatever explained micrometres of
+    noise through a velocity estimated at ~1 mm/s (20 ms off during a still start)."""
+    B = np.hstack([-H[:, TH], H[:, P]])
+    P_uu = cov[np.ix_(_U, _U)]
+    P_uu[0:3, 0:3] += w_var * np.eye(3)
+    p_ut = cov[_U, TD]
+    BPB = B @ P_uu @ B.T
+    extra = BPB * cov[TD, TD] + np.outer(B @ p_ut, B @ p_ut)
+    h_td = H[:, TD]
+    return extra, float(h_td @ h_td) > ratio * ratio * float(np.trace(BPB))
+
+
 def pose_covariance(H: np.ndarray, cov: np.ndarray) -> np.ndarray:
     """The 6x6 covariance of T_CO (wire convention) from the filter's covariance."""
     out = H @ cov @ H.T
@@ -60,12 +86,15 @@ def pose_covariance(H: np.ndarray, cov: np.ndarray) -> np.ndarray:
 
 
 def update(state: FilterState, td: float, T_CO_meas: np.ndarray, sigma: np.ndarray, R_CB: np.ndarray,
-           t_CB: np.ndarray, w: tuple, gate_chi2: float, gravity_state: bool) -> UpdateResult:
-    """One ESKF update of `state` (the state at the measurement's time) with a backend T_CO."""
+           t_CB: np.ndarray, w: tuple, w_var: float, gate_chi2: float, gravity_state: bool) -> UpdateResult:
+    """One ESKF update of `state` (the state at the measurement's time) with a backend T_CO; `w` the
+    bias-corrected gyro rate there, `w_var` its sample noise's variance per axis."""
     R_CO, Rp, H = pose_jacobian(state.x, R_CB, w, state.x[12:15])
     r = np.empty(6)
     r[0:3] = so3.log(T_CO_meas[:3, :3] @ R_CO.T)
     r[3:6] = T_CO_meas[:3, 3] - (t_CB - Rp)
+    extra, excited = offset_terms(H, state.cov, w_var)
+    sigma = sigma + extra
     PHt = state.cov @ H.T
     S = H @ PHt + sigma
     S_inv = np.linalg.inv(0.5 * (S + S.T))
@@ -73,6 +102,8 @@ def update(state: FilterState, td: float, T_CO_meas: np.ndarray, sigma: np.ndarr
     if not np.isfinite(chi2) or chi2 > gate_chi2:
         return UpdateResult(False, chi2, None, td)
     K = PHt @ S_inv
+    if not excited:
+        K[TD] = 0.0
     dx = K @ r
     IKH = _I - K @ H
     cov = IKH @ state.cov @ IKH.T + K @ sigma @ K.T

@@ -69,8 +69,6 @@ class FilterTracker(TrackerBase):
         self._prop = CovariancePropagator(fo)
         self._default_sigma = np.diag([(fo.default_rotation_std_deg * _DEG) ** 2] * 3
                                       + [fo.default_translation_std_m ** 2] * 3)
-        self._answer_floor = np.diag([(fo.answer_floor_rotation_deg * _DEG) ** 2] * 3
-                                     + [fo.answer_floor_translation_m ** 2] * 3)
         self._buf = ImuBuffer(round(o.imu_buffer_s * 1e9))
         self._anchor: tuple[int, FilterState] | None = None  # the state set by the last answer, at its time
         self._td = fo.time_offset_s
@@ -181,6 +179,14 @@ class FilterTracker(TrackerBase):
         s = buf.samples[i]
         return (s[1] - c[0], s[2] - c[1], s[3] - c[2])
 
+    def _rate_noise_var(self, t: int) -> float:
+        """The variance per axis of one gyro sample's white noise near t: density^2 / interval."""
+        times = self._buf.times
+        i = max(self._buf.index_at_or_before(t), 0)
+        j = i + 1 if i + 1 < len(times) else i
+        dt = (times[j] - times[j - 1]) * 1e-9 if j > 0 else 0.0
+        return self._prop.densities[0] ** 2 / dt if dt > 0 else 0.0
+
     def _imu_time(self, t_camera: int) -> int:
         return t_camera + round(self._td * 1e9)
 
@@ -251,8 +257,11 @@ class FilterTracker(TrackerBase):
             return self._initializing_frame(t)
         t_imu = self._imu_time(t)
         st = self._full_at(t_imu)  # the covariance propagated to the frame, not the sample before it
-        T_CO = self._eased(self._T_CO(st.x), t)
-        cov = self._pose_covariance(st, t_imu)
+        left = self._ease_left(t)
+        T_CO = self._eased(self._T_CO(st.x), left)
+        # the shown pose is the filter's minus a known offset: its mean-square error about the truth is the
+        # filter's covariance plus the offset's outer product (what a NEES of the shown pose must be read on)
+        cov = self._pose_covariance(st, t_imu) + np.outer(left, left)
         status, detail = Status.FINE, "tracking"
         if o.pia:
             uv = self.inspector.project(T_CO)
@@ -279,10 +288,9 @@ class FilterTracker(TrackerBase):
         tau = max(fo.ease_s, fo.ease_min_frames * self._frame_interval_s)
         return offset * np.exp(-(t - t_set) * 1e-9 / tau)
 
-    def _eased(self, T_CO: np.ndarray, t: int) -> np.ndarray:
-        """The pose shown at frame time t: the filter's, minus what is left of its recent corrections
+    def _eased(self, T_CO: np.ndarray, o: np.ndarray) -> np.ndarray:
+        """The pose shown: the filter's, minus `o`, what is left at the frame's time of its recent corrections
         (`FilterOptions.ease_s`), so that a correction glides in over a few frames instead of jumping."""
-        o = self._ease_left(t)
         if not o.any():
             return T_CO
         T = T_CO.copy()
@@ -322,7 +330,6 @@ class FilterTracker(TrackerBase):
         if sigma is None or not fo.use_backend_covariance:
             note = "" if sigma is not None else " (no covariance from the backend: the default used)"
             sigma = self._default_sigma
-        sigma = sigma + self._answer_floor
         tau = self._imu_time(t0)
         buf = self._buf
         if not len(buf) or tau < buf.first_t_ns or (self._anchor is not None and self._base_at(tau) is None):
@@ -331,8 +338,8 @@ class FilterTracker(TrackerBase):
             self._initialize(tau, T, sigma)
             return self._outcome(ResponseOutcome.INITIALIZED, "tracking: initialised from the first backend pose" + note)
         st = self._full_at(tau)
-        res = update(st, self._td, T, sigma, self._R_CB, self._t_CB, self._rate_at(tau, st.c), fo.gate_chi2,
-                     fo.gravity_state)
+        res = update(st, self._td, T, sigma, self._R_CB, self._t_CB, self._rate_at(tau, st.c),
+                     self._rate_noise_var(tau), fo.gate_chi2, fo.gravity_state)
         self.last_chi2 = res.chi2
         if not res.accepted:
             self._rejected += 1

@@ -82,13 +82,16 @@ def converted(out: Path, data: Path, fps: float, object_scale: float, object_dis
     data's files (names, sizes, modification times), the options nor the converter's code change."""
     from flextrack.simulator import euroc_convert
 
-    files = sorted((str(p.relative_to(data)), p.stat().st_size, p.stat().st_mtime_ns)
+    stats = sorted((str(p.relative_to(data)), p.stat().st_size, p.stat().st_mtime_ns)
                    for p in data.rglob("*") if p.is_file())
-    key = hashlib.sha256(json.dumps([files, fps, object_scale, object_distance_m, object_position]).encode())
-    # the name is the sequence's identity (the Noisy oracle's draws are keyed by it): the code's hash is kept
-    # beside it, so that a changed converter remakes the folder without changing the draws
+    # the name is the sequence's identity (the Noisy oracle's draws are keyed by it): the data's names and
+    # sizes and the options, never the files' times, so that a copy of the same data gets the same draws;
+    # times and the converter's code are in a stamp beside it, and a change in either remakes the folder
+    key = hashlib.sha256(json.dumps([[f[:2] for f in stats], fps, object_scale, object_distance_m,
+                                     object_position]).encode())
     root = out / "sequences" / f"{euroc_convert._source_name(data)}_{fps:g}fps_x{object_scale:g}_{key.hexdigest()[:12]}"
-    code = hashlib.sha256(Path(euroc_convert.__file__).read_bytes()).hexdigest()
+    code = hashlib.sha256(json.dumps([stats, hashlib.sha256(Path(euroc_convert.__file__).read_bytes()).hexdigest()])
+                          .encode()).hexdigest()
     stamp = root / "converter.sha256"
     if not (root / "rig.yaml").is_file() or not stamp.is_file() or stamp.read_text() != code:
         if root.exists():
