@@ -18,7 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("flextrack.simulator.cli", "generate a synthetic sequence folder (trajectory, IMU, ground truth, frames)"),
     "convert-euroc": ("flextrack.simulator.euroc_cli", "turn a EuRoC IMU + ground-truth recording into a sequence folder"),
     "track": ("flextrack.runners.track_cli", "replay a sequence folder through the tracker and report its errors"),
-    "experiment": ("flextrack.experiments.cli", "rerun the paper's experiments: table2, ablation, timing, euroc"),
+    "experiment": ("flextrack.experiments.cli", "rerun the paper's experiments (table2, ablation, timing, euroc) and the filter's own (filter, bound)"),
     "train": ("flextrack.training.cli", "train the PVNet-style network on rendered views and export it to ONNX"),
     "bench": ("flextrack.benchmarks.cli", "benchmarks that print figures: service throughput, rendering, estimators"),
     "loadtest": ("flextrack.loadtest.cli", "load-test a running service with many Track streams"),

@@ -56,6 +56,10 @@ def pose_jacobian(x: tuple, R_CB: np.ndarray, w: tuple, v: tuple) -> tuple[np.nd
 
 
 _U = np.r_[np.arange(N)[BG], np.arange(N)[V]]  # the error-state entries of the rates the offset multiplies
+_UU = np.ix_(_U, _U)
+_W_DIAG = (np.arange(3), np.arange(3))
+_B_COLUMNS = np.r_[np.arange(N)[TH], np.arange(N)[P]]
+_B_SIGN = np.array([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0])  # B = (-H_theta, H_p)
 
 
 def offset_terms(H: np.ndarray, cov: np.ndarray, w_var: float, ratio: float = 3.0) -> tuple[np.ndarray, bool]:
@@ -69,14 +73,14 @@ def offset_terms(H: np.ndarray, cov: np.ndarray, w_var: float, ratio: float = 3.
     uncertainty of B u (a still device: w = v = 0), the offset is a consider state (Schmidt): in S, not
     corrected. Without either, an exact answer pulled the offset to whatever explained micrometres of
     noise through a velocity estimated at ~1 mm/s (20 ms off during a still start)."""
-    B = np.hstack([-H[:, TH], H[:, P]])
-    P_uu = cov[np.ix_(_U, _U)]
-    P_uu[0:3, 0:3] += w_var * np.eye(3)
-    p_ut = cov[_U, TD]
+    B = H[:, _B_COLUMNS] * _B_SIGN
+    P_uu = cov[_UU]
+    P_uu[_W_DIAG] += w_var
     BPB = B @ P_uu @ B.T
-    extra = BPB * cov[TD, TD] + np.outer(B @ p_ut, B @ p_ut)
+    b = B @ cov[_U, TD]
+    extra = BPB * cov[TD, TD] + b[:, None] * b
     h_td = H[:, TD]
-    return extra, float(h_td @ h_td) > ratio * ratio * float(np.trace(BPB))
+    return extra, float(h_td @ h_td) > ratio * ratio * float(BPB.trace())
 
 
 def pose_covariance(H: np.ndarray, cov: np.ndarray) -> np.ndarray:
