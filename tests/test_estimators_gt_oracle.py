@@ -42,6 +42,10 @@ def test_between_frames_it_interpolates_linearly_and_by_slerp(seq):
     out = ask(oracle, t0 + (t1 - t0) // 4)
     expected = se3.interpolate(seq.gt_T_CO[3], seq.gt_T_CO[4], ((t1 - t0) // 4) / (t1 - t0))
     assert out.status is Status.OK and np.allclose(out.T_CO, expected, atol=1e-12)
+    # a frame's own pose is exact (the floor only keeps the matrix invertible); an interpolated one is not
+    at_frame = ask(oracle, t0).covariance
+    assert np.sqrt(at_frame[3, 3]) < 1e-7
+    assert np.sqrt(out.covariance[3, 3]) == pytest.approx(np.hypot(1e-8, 2e-6))
 
 
 def test_not_in_view_is_object_not_found(seq):
