@@ -68,9 +68,8 @@ class CovariancePropagator:
         makes their second difference m[k+1] - 2 m[k] + m[k-1] = (s[k+2] - s[k+1] - s[k] + s[k-1]) / 2
         n^2 r in mean square per axis, smooth motion adds next to nothing to it (a simulated Pixel 2
         reads its yaml), and vibration near the Nyquist rate, which the means cancel, adds little
-        (EuRoC's rotors: `flextrack experiment euroc` 0.99 px with raw second differences, 0.89 px
-        with these). A vibrating device still shows far more than its datasheet's n, and the filter
-        must believe it."""
+        (EuRoC's rotors; the CHANGELOG has what it did to that experiment). A vibrating device still
+        shows far more than its datasheet's n, and the filter must believe it."""
         if not self._adapt:
             return
         s0, s1, s2 = self._last
