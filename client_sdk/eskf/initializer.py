@@ -1,12 +1,13 @@
 """The filter's first state: the first backend pose, gravity and gyro bias from the IMU window before it.
 
 A still window measures gravity in the body frame (minus the mean accelerometer) and the gyro bias
-(the mean gyro) to the standard errors of those means, above small floors (0.5 s at 200 Hz of the
-simulated Pixel 2's densities: ~0.001 m/s^2 and ~0.1 mrad/s). A moving one still gives gravity's
-direction: carried back from the pose by the gyro, the specific forces average to -g_O over a window in which the device's own acceleration
-averages out (hand motion: ~0.1-0.3 m/s^2 over half a second), so the filter starts from that with
-an honest uncertainty (`init_gravity_std`, its norm standard gravity's) and the answers that follow refine it. Velocity
-starts at zero with `init_velocity_std` (near zero when still).
+(the mean gyro) to the standard errors of those means (for 0.5 s of a simulated Pixel 2 at 200 Hz,
+~0.001 m/s^2 and ~0.1 mrad/s), never better than `still_gravity_std` and `still_gyro_bias_std`. A
+moving one still gives gravity's direction: carried back from the pose by the gyro, the specific
+forces average to -g_O over a window in which the device's own acceleration averages out (hand
+motion: ~0.1-0.3 m/s^2 over half a second), so the filter starts from that with an honest
+uncertainty (`init_gravity_std`, its norm standard gravity's) and the answers that follow refine it.
+Velocity starts at zero with `init_velocity_std` (near zero when still).
 """
 
 from __future__ import annotations

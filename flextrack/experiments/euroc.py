@@ -90,15 +90,15 @@ def converted(out: Path, data: Path, fps: float, object_scale: float, object_dis
     key = hashlib.sha256(json.dumps([[f[:2] for f in stats], fps, object_scale, object_distance_m,
                                      object_position]).encode())
     root = out / "sequences" / f"{euroc_convert._source_name(data)}_{fps:g}fps_x{object_scale:g}_{key.hexdigest()[:12]}"
-    code = hashlib.sha256(json.dumps([stats, hashlib.sha256(Path(euroc_convert.__file__).read_bytes()).hexdigest()])
-                          .encode()).hexdigest()
+    converter = hashlib.sha256(Path(euroc_convert.__file__).read_bytes()).hexdigest()
+    made_from = hashlib.sha256(json.dumps([stats, converter]).encode()).hexdigest()
     stamp = root / "converter.sha256"
-    if not (root / "rig.yaml").is_file() or not stamp.is_file() or stamp.read_text() != code:
+    if not (root / "rig.yaml").is_file() or not stamp.is_file() or stamp.read_text() != made_from:
         if root.exists():
             shutil.rmtree(root)
         euroc_convert.convert_euroc(data, root, fps=fps, object_scale=object_scale, object_distance_m=object_distance_m,
                       object_position=object_position)
-        stamp.write_text(code)
+        stamp.write_text(made_from)
     if not (root / "plots" / "trajectory.png").is_file():  # the camera path and the object's place, drawn
         from flextrack.simulator.plots import plot_sequence
 
