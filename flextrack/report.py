@@ -60,13 +60,17 @@ def read_provenance(path: Path) -> dict:
 
 
 def provenance_line(prov: dict, command: str | None = None) -> str:
-    """One sentence: the command, the date, the commit (dirty or not) and the host."""
+    """One sentence: the command, the date, the commit (dirty or not), the host and, when recorded, the wall
+    time and the processes it ran in."""
     commit = (prov.get("commit") or "unknown")[:10]
     dirty = prov.get("dirty")
     state = " (uncommitted changes in the tree)" if dirty else ("" if dirty is False else " (tree state unknown)")
     cmd = command or prov.get("options", {}).get("command")
     parts = [f"`{cmd}`" if cmd else None, f"run {prov.get('date', '?')}", f"commit {commit}{state}",
              f"host {prov.get('host', '?')}"]
+    if prov.get("wall_s") is not None:
+        jobs = prov.get("options", {}).get("jobs")
+        parts.append(f"{prov['wall_s']:.0f} s" + (f" in {jobs} processes" if jobs and jobs > 1 else ""))
     return "Source: " + ", ".join(p for p in parts if p) + "."
 
 

@@ -16,7 +16,8 @@ def _csv(path):
 
 def test_table2_on_short_sequences_writes_the_agreed_csv(tmp_path, capsys):
     out = tmp_path / "t2"
-    assert main(["experiment", "table2", "--out", str(out), "--duration", "3", "--fps", "30", "--in-process"]) == 0
+    assert main(["experiment", "table2", "--out", str(out), "--duration", "3", "--fps", "30", "--in-process",
+                 "--jobs", "1"]) == 0
     rows = _csv(out / "table2.csv")
     assert list(rows[0]) == ["motion", "level", "fps", "backend", "seed", "pos_mm", "ori_deg", "proj_px",
                              "paper_pos_mm", "paper_ori_deg", "paper_proj_px", "jitter_px", "nees_mean", "nees_lo",
@@ -39,6 +40,16 @@ def test_table2_on_short_sequences_writes_the_agreed_csv(tmp_path, capsys):
     tum = out / "trajectories" / "filter_circular_medium_30fps_gt_estimate.tum"
     assert tum.read_text().startswith("# timestamp tx ty tz qx qy qz qw")
     assert "Table 2 rerun" in capsys.readouterr().out
+
+
+def test_table2_cells_in_parallel_processes_give_the_same_rows(tmp_path):
+    from flextrack.experiments import table2
+
+    grid = {"duration_s": 2.0, "fps_list": (30,), "motions": ("translational",), "levels": ("easy", "hard")}
+    alone = table2.run(tmp_path / "one", [0], jobs=1, **grid)
+    parallel = table2.run(tmp_path / "two", [0], jobs=2, **grid)  # spawned workers, a gRPC server each
+    assert len(alone) == 4 and parallel == alone
+    assert (tmp_path / "one" / "table2_paper.csv").read_text() == (tmp_path / "two" / "table2_paper.csv").read_text()
 
 
 def test_timing_writes_the_agreed_csv(tmp_path):

@@ -22,7 +22,7 @@ Writes bound.md and bound.csv under --out; the CLI adds bound.json (provenance).
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -59,27 +59,40 @@ def predicted_px(record: TrackRecord, seed: int) -> float:
     return float(px.mean())
 
 
-def run(out: Path, seeds: list[int], duration_s: float = 30.0, in_process: bool = False, fps_list=paper.FPS,
-        motions=paper.MOTIONS, levels=paper.LEVELS) -> list[list]:
-    cache = out / "sequences"
+@dataclass(frozen=True)
+class Cell:
+    out: Path
+    seed: int
+    motion: str
+    level: str
+    fps: float
+    duration_s: float
+    in_process: bool
+
+
+def run_cell(cell: Cell) -> list:
+    """The cell's CSV row; runs in a worker process of `run`."""
+    cache = cell.out / "sequences"
+    seq = common.simulated(cache, common.SimSpec(cell.motion, cell.level, cell.fps, cell.seed, cell.duration_s))
+    ideal = common.simulated(cache, common.SimSpec(cell.motion, cell.level, cell.fps, cell.seed, cell.duration_s,
+                                                   imu="ideal"))
+    ideal = replace(ideal, imu_noise=seq.imu_noise)  # the filter's model stays the real IMU's
     exact = GtOracleEstimator(CLAIMING, floor_r_deg=NOISY_R_DEG, floor_t_m=NOISY_T_M)
-    cells = [(m, lv, f) for m in motions for lv in levels for f in fps_list]
-    rows = []
-    with common.progress(len(seeds) * len(cells), "bound") as bar:
-        for seed in seeds:
-            with common.OracleBackend(noise_seed=seed, in_process=in_process, extra=(exact,)) as oracle:
-                for motion, level, fps in cells:
-                    seq = common.simulated(cache, common.SimSpec(motion, level, fps, seed, duration_s))
-                    ideal = common.simulated(cache, common.SimSpec(motion, level, fps, seed, duration_s, imu="ideal"))
-                    ideal = replace(ideal, imu_noise=seq.imu_noise)  # the filter's model stays the real IMU's
-                    options = ReplayOptions(network=NetworkOptions(seed=seed), estimator="noisy")
-                    measured = oracle.run(seq, common.FILTER, options)
-                    ideal_run = oracle.run(ideal, common.FILTER, replace(options, estimator=CLAIMING))
-                    s = measured.summarize()
-                    rows.append([motion, level, fps, seed, s.proj_px, float(np.mean([r.proj_px for r in steady(measured)])),
-                                 predicted_px(measured, seed), predicted_px(ideal_run, seed), s.nees_mean])
-                    bar.set_postfix_str(f"{motion}/{level}/{fps}: {rows[-1][5]:.2f} px, bound {rows[-1][7]:.2f}")
-                    bar.update()
+    options = ReplayOptions(network=NetworkOptions(seed=cell.seed), estimator="noisy")
+    with common.OracleBackend(noise_seed=cell.seed, in_process=cell.in_process, extra=(exact,)) as oracle:
+        measured = oracle.run(seq, common.FILTER, options)
+        ideal_run = oracle.run(ideal, common.FILTER, replace(options, estimator=CLAIMING))
+    s = measured.summarize()
+    return [cell.motion, cell.level, cell.fps, cell.seed, s.proj_px, float(np.mean([r.proj_px for r in steady(measured)])),
+            predicted_px(measured, cell.seed), predicted_px(ideal_run, cell.seed), s.nees_mean]
+
+
+def run(out: Path, seeds: list[int], duration_s: float = 30.0, in_process: bool = False, fps_list=paper.FPS,
+        motions=paper.MOTIONS, levels=paper.LEVELS, jobs: int = 1) -> list[list]:
+    tasks = [Cell(out, seed, m, lv, f, duration_s, in_process)
+             for seed in seeds for m in motions for lv in levels for f in fps_list]
+    rows = common.run_cells(run_cell, tasks, jobs, "bound",
+                            lambda r: f"{r[0]}/{r[1]}/{r[2]:g}: {r[5]:.2f} px, bound {r[7]:.2f}", cost=lambda c: c.fps)
     common.write_csv(out / "bound.csv", HEADER, rows)
     (out / "bound.md").write_text(report(rows, seeds, duration_s))
     return rows

@@ -31,6 +31,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"table2, bound: frame rates among {list(paper.FPS)} (all four unless given; 30 and 120 with "
                         f"--backend); euroc: the one frame rate (default: {paper.EUROC_FPS:g}, the paper's real-data rate)")
     parser.add_argument("--in-process", action="store_true", help="call the backend in-process instead of gRPC")
+    parser.add_argument("--jobs", type=int, default=None, metavar="N",
+                        help="table2 (oracles), bound: cells run at once, each process with its own backend server "
+                        "(default: one per CPU; the figures do not depend on it)")
     parser.add_argument("--backend", default="oracles",
                         help="table2: 'oracles' (GT and Noisy, the paper's table) or an image estimator of --config "
                         "(e.g. pvnet), run beside gt_oracle on rendered frames (its cells unless given: translational "
@@ -70,6 +73,7 @@ def run(args) -> int:
     from flextrack.experiments import (  # the sim extra
         ablation,
         bound,
+        common,
         euroc,
         filter_checks,
         table2,
@@ -85,6 +89,8 @@ def run(args) -> int:
         problem = f"{args.experiment} --fps: choose among {list(paper.FPS)}, got {[f'{f:g}' for f in args.fps]}"
     if args.experiment == "euroc" and args.fps and len(args.fps) != 1:
         problem = "euroc --fps: give one frame rate"
+    if args.jobs is not None and args.jobs < 1:
+        problem = f"--jobs must be at least 1, got {args.jobs}"
     if (args.preset or args.set) and args.experiment != "euroc":
         problem = "--preset and --set apply to euroc (table2, ablation and filter run their own variants)"
     if problem:
@@ -93,6 +99,8 @@ def run(args) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     seed_list = list(range(args.seeds)) if grid or args.experiment == "filter" else [args.seed]
+    if grid and args.backend == "oracles":
+        args.jobs = args.jobs or common.default_jobs()  # the provenance records how many ran at once
     record = of_args(args, command="flextrack experiment " + args.experiment, seed_list=seed_list)  # at the start
     fps = tuple(int(f) for f in args.fps) if args.fps and grid else None
     try:
@@ -100,9 +108,9 @@ def run(args) -> int:
             table2_vision.run(args.out, args.backend, list(range(args.seeds)), args.duration, fps or (30, 120),
                               config=args.config or table2_vision.DEFAULT_CONFIG, backend_ms=args.backend_ms)
         elif args.experiment == "table2":
-            table2.run(args.out, list(range(args.seeds)), args.duration, args.in_process, fps or paper.FPS)
+            table2.run(args.out, list(range(args.seeds)), args.duration, args.in_process, fps or paper.FPS, jobs=args.jobs)
         elif args.experiment == "bound":
-            bound.run(args.out, list(range(args.seeds)), args.duration, args.in_process, fps or paper.FPS)
+            bound.run(args.out, list(range(args.seeds)), args.duration, args.in_process, fps or paper.FPS, jobs=args.jobs)
         elif args.experiment == "ablation":
             ablation.run(args.out, args.seed, args.duration, in_process=args.in_process)
         elif args.experiment == "filter":

@@ -1,11 +1,15 @@
 """What every experiment shares: simulated sequences (cached by their settings), a backend server
-whose oracles learn sequences as they are generated, CSV/Markdown writing and a progress bar.
+whose oracles learn sequences as they are generated, grids of cells run in parallel processes,
+CSV/Markdown writing and a progress bar.
 """
 
 from __future__ import annotations
 
 import csv
-from collections.abc import Iterator
+import multiprocessing
+import os
+from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -122,5 +126,41 @@ def markdown_table(header: list[str], rows: list[list]) -> str:
     return "\n".join(lines)
 
 
-def progress(total: int, desc: str) -> tqdm:
-    return tqdm(total=total, desc=desc, unit="run", dynamic_ncols=True, leave=True)
+def progress(total: int, desc: str, unit: str = "run") -> tqdm:
+    return tqdm(total=total, desc=desc, unit=unit, dynamic_ncols=True, leave=True)
+
+
+def default_jobs() -> int:
+    """One process per CPU this process may use."""
+    return max(1, len(os.sched_getaffinity(0)))
+
+
+def run_cells(worker: Callable, tasks: list, jobs: int, desc: str, describe: Callable[[object], str],
+              cost: Callable[[object], float] = lambda task: 0.0) -> list:
+    """`worker(task)` for every task, results in the tasks' order, with a progress bar (`describe(result)` its
+    postfix). With jobs > 1 the tasks run in that many spawned processes (each cell starts its own backend
+    there: no gRPC state crosses a fork), the costliest first so that none is left alone at the end. A
+    cell's result depends only on its task (the oracles draw their noise from (seed, sequence, time), the
+    network from its seed), so it is the same for any `jobs`."""
+    results: list = [None] * len(tasks)
+    with progress(len(tasks), desc, unit="cell") as bar:
+        def done(i: int, result) -> None:
+            results[i] = result
+            bar.set_postfix_str(describe(result))
+            bar.update()
+
+        if jobs <= 1 or len(tasks) <= 1:
+            for i, task in enumerate(tasks):
+                done(i, worker(task))
+            return results
+        with ProcessPoolExecutor(max_workers=min(jobs, len(tasks)),
+                                 mp_context=multiprocessing.get_context("spawn")) as pool:
+            order = sorted(range(len(tasks)), key=lambda i: -cost(tasks[i]))
+            futures = {pool.submit(worker, tasks[i]): i for i in order}
+            try:
+                for future in as_completed(futures):
+                    done(futures[future], future.result())
+            except BaseException:
+                pool.shutdown(cancel_futures=True)
+                raise
+    return results

@@ -9,6 +9,7 @@ Two tracker variants (`flextrack.experiments.common.TRACKER_VARIANTS`): "filter"
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -23,34 +24,62 @@ HEADER = ["motion", "level", "fps", "backend", "seed", "pos_mm", "ori_deg", "pro
 GT_LIMIT_PX, NOISY_LIMIT_PX = 1.0, 2.5  # what we hold ourselves to (the paper: at most 0.69 and 2.33)
 
 
+@dataclass(frozen=True)
+class Cell:
+    """One (seed, program, frame rate) of the grid: both backends, every tracker variant."""
+
+    out: Path
+    seed: int
+    motion: str
+    level: str
+    fps: float
+    duration_s: float
+    in_process: bool
+    variants: tuple[str, ...]
+    write_trajectories: bool
+
+
+def run_cell(cell: Cell) -> dict[str, list[tuple[list, float]]]:
+    """variant -> per backend (the CSV row, % of frames FINE); runs in a worker process of `run`."""
+    seq = common.simulated(cell.out / "sequences", common.SimSpec(cell.motion, cell.level, cell.fps, cell.seed,
+                                                                  cell.duration_s))
+    result = {v: [] for v in cell.variants}
+    with common.OracleBackend(noise_seed=cell.seed, in_process=cell.in_process) as oracle:
+        for backend in paper.BACKENDS:
+            for variant in cell.variants:
+                options = ReplayOptions(network=NetworkOptions(seed=cell.seed), estimator=backend)
+                record = oracle.run(seq, common.TRACKER_VARIANTS[variant], options)
+                s = record.summarize()
+                row = [cell.motion, cell.level, cell.fps, backend, cell.seed, s.pos_mm, s.ori_deg, s.proj_px,
+                       *paper.TABLE2[(cell.motion, cell.level, cell.fps, backend)], s.jitter_px, s.nees_mean,
+                       s.nees_lo, s.nees_hi, s.worst_fine_px]
+                result[variant].append((row, 100.0 * s.status_counts.get("FINE", 0) / max(1, s.frames)))
+                if cell.write_trajectories:
+                    record.write(cell.out / "trajectories", f"{variant}_{cell.motion}_{cell.level}_{cell.fps:g}fps_{backend}")
+    return result
+
+
+def _describe(result: dict) -> str:
+    first = next(iter(result.values()))
+    row = first[-1][0]
+    return f"{row[0]}/{row[1]}/{row[2]:g}: noisy {row[7]:.2f} px"
+
+
 def run(out: Path, seeds: list[int], duration_s: float = 30.0, in_process: bool = False, fps_list=paper.FPS,
-        motions=paper.MOTIONS, levels=paper.LEVELS, variants=tuple(common.TRACKER_VARIANTS)) -> list[list]:
-    """Rows of the first variant (normally "filter"); every variant's CSV and report section are written."""
-    cache = out / "sequences"
-    traj_dir = out / "trajectories"
-    traj_dir.mkdir(parents=True, exist_ok=True)
-    rows = {v: [] for v in variants}
+        motions=paper.MOTIONS, levels=paper.LEVELS, variants=tuple(common.TRACKER_VARIANTS),
+        jobs: int = 1) -> list[list]:
+    """Rows of the first variant (normally "filter"); every variant's CSV and report section are written.
+    `jobs` cells run at once, in processes of their own (the rows do not depend on it)."""
+    (out / "trajectories").mkdir(parents=True, exist_ok=True)
+    tasks = [Cell(out, seed, m, lv, f, duration_s, in_process, tuple(variants), seed == seeds[0])
+             for seed in seeds for m in motions for lv in levels for f in fps_list]
+    results = common.run_cells(run_cell, tasks, jobs, "table2", _describe, cost=lambda c: c.fps)
+    rows = {v: [row for result in results for row, _ in result[v]] for v in variants}
     fine = {v: {} for v in variants}
-    cells = [(m, lv, f) for m in motions for lv in levels for f in fps_list]
-    with common.progress(len(seeds) * len(cells) * len(paper.BACKENDS) * len(variants), "table2") as bar:
-        for seed in seeds:
-            with common.OracleBackend(noise_seed=seed, in_process=in_process) as oracle:
-                for motion, level, fps in cells:
-                    seq = common.simulated(cache, common.SimSpec(motion, level, fps, seed, duration_s))
-                    for backend in paper.BACKENDS:
-                        for variant in variants:
-                            options = ReplayOptions(network=NetworkOptions(seed=seed), estimator=backend)
-                            record = oracle.run(seq, common.TRACKER_VARIANTS[variant], options)
-                            s = record.summarize()
-                            rows[variant].append([motion, level, fps, backend, seed, s.pos_mm, s.ori_deg, s.proj_px,
-                                                  *paper.TABLE2[(motion, level, fps, backend)], s.jitter_px,
-                                                  s.nees_mean, s.nees_lo, s.nees_hi, s.worst_fine_px])
-                            fine[variant].setdefault((motion, level, fps, backend), []).append(
-                                100.0 * s.status_counts.get("FINE", 0) / max(1, s.frames))
-                            if seed == seeds[0]:
-                                record.write(traj_dir, f"{variant}_{motion}_{level}_{fps}fps_{backend}")
-                            bar.set_postfix_str(f"{motion}/{level}/{fps}/{backend}/{variant}: {s.proj_px:.2f} px")
-                            bar.update()
+    for result in results:
+        for v in variants:
+            for row, fine_pct in result[v]:
+                fine[v].setdefault(tuple(row[:4]), []).append(fine_pct)
     sections = []
     for variant in variants:
         suffix = "" if variant == "filter" else f"_{variant}"
