@@ -22,7 +22,7 @@ Writes bound.md and bound.csv under --out; the CLI adds bound.json (provenance).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -59,23 +59,11 @@ def predicted_px(record: TrackRecord, seed: int) -> float:
     return float(px.mean())
 
 
-@dataclass(frozen=True)
-class Cell:
-    out: Path
-    seed: int
-    motion: str
-    level: str
-    fps: float
-    duration_s: float
-    in_process: bool
-
-
-def run_cell(cell: Cell) -> list:
+def run_cell(cell: common.GridCell) -> list:
     """The cell's CSV row; runs in a worker process of `run`."""
     cache = cell.out / "sequences"
-    seq = common.simulated(cache, common.SimSpec(cell.motion, cell.level, cell.fps, cell.seed, cell.duration_s))
-    ideal = common.simulated(cache, common.SimSpec(cell.motion, cell.level, cell.fps, cell.seed, cell.duration_s,
-                                                   imu="ideal"))
+    seq = common.simulated(cache, cell.spec())
+    ideal = common.simulated(cache, cell.spec(imu="ideal"))
     ideal = replace(ideal, imu_noise=seq.imu_noise)  # the filter's model stays the real IMU's
     exact = GtOracleEstimator(CLAIMING, floor_r_deg=NOISY_R_DEG, floor_t_m=NOISY_T_M)
     options = ReplayOptions(network=NetworkOptions(seed=cell.seed), estimator="noisy")
@@ -89,7 +77,7 @@ def run_cell(cell: Cell) -> list:
 
 def run(out: Path, seeds: list[int], duration_s: float = 30.0, in_process: bool = False, fps_list=paper.FPS,
         motions=paper.MOTIONS, levels=paper.LEVELS, jobs: int = 1) -> list[list]:
-    tasks = [Cell(out, seed, m, lv, f, duration_s, in_process)
+    tasks = [common.GridCell(out, seed, m, lv, f, duration_s, in_process)
              for seed in seeds for m in motions for lv in levels for f in fps_list]
     rows = common.run_cells(run_cell, tasks, jobs, "bound",
                             lambda r: f"{r[0]}/{r[1]}/{r[2]:g}: {r[5]:.2f} px, bound {r[7]:.2f}", cost=lambda c: c.fps)

@@ -52,6 +52,22 @@ class SimSpec:
         return f"{self.motion}_{self.level}_{self.fps:g}fps_{self.duration_s:g}s_{self.imu}_seed{self.seed}"
 
 
+@dataclass(frozen=True)
+class GridCell:
+    """One (seed, program, frame rate) of a grid experiment, as a worker process of `run_cells` gets it."""
+
+    out: Path
+    seed: int
+    motion: str
+    level: str
+    fps: float
+    duration_s: float
+    in_process: bool
+
+    def spec(self, imu: str = "pixel2") -> SimSpec:
+        return SimSpec(self.motion, self.level, self.fps, self.seed, self.duration_s, imu)
+
+
 def simulated(cache: Path, spec: SimSpec) -> Sequence:
     """The sequence of `spec`, generated into `cache` the first time (no rendering: oracles need no pixels)."""
     from flextrack.simulator.generate import generate_sequence

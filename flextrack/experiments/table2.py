@@ -25,24 +25,16 @@ GT_LIMIT_PX, NOISY_LIMIT_PX = 1.0, 2.5  # what we hold ourselves to (the paper: 
 
 
 @dataclass(frozen=True)
-class Cell:
-    """One (seed, program, frame rate) of the grid: both backends, every tracker variant."""
+class Cell(common.GridCell):
+    """A cell of the grid, run with both backends and every tracker variant."""
 
-    out: Path
-    seed: int
-    motion: str
-    level: str
-    fps: float
-    duration_s: float
-    in_process: bool
     variants: tuple[str, ...]
     write_trajectories: bool
 
 
 def run_cell(cell: Cell) -> dict[str, list[tuple[list, float]]]:
     """variant -> per backend (the CSV row, % of frames FINE); runs in a worker process of `run`."""
-    seq = common.simulated(cell.out / "sequences", common.SimSpec(cell.motion, cell.level, cell.fps, cell.seed,
-                                                                  cell.duration_s))
+    seq = common.simulated(cell.out / "sequences", cell.spec())
     result = {v: [] for v in cell.variants}
     with common.OracleBackend(noise_seed=cell.seed, in_process=cell.in_process) as oracle:
         for backend in paper.BACKENDS:
