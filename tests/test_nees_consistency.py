@@ -1,9 +1,31 @@
-"""The NEES interval that allows for correlated frames: right coverage on series whose truth is known."""
+"""A run's NEES, whole and its rotation block's, and the interval of its mean that allows for correlated
+frames: right coverage on series whose truth is known."""
 
 import numpy as np
+import pytest
 
 from flextrack.autocorrelation import autocorrelation_time
 from flextrack.evaluation.consistency import nees_mean_interval
+from flextrack.geometry import so3
+from flextrack.geometry.camera import PinholeCamera
+from flextrack.runners.results import TrackRecord
+
+
+def test_a_record_scores_the_nees_and_its_rotation_block_on_the_wire_convention():
+    truth = np.eye(4)
+    truth[:3, 3] = (0.05, -0.02, 0.6)
+    estimate = truth.copy()
+    estimate[:3, :3] = so3.exp(-np.array([0.002, 0.0, 0.0])) @ truth[:3, :3]  # R_true = Exp(e_r) R_est
+    estimate[:3, 3] -= (0.0, 0.003, 0.0)  # t_true = t_est + e_t
+    covariance = np.diag([0.001**2] * 3 + [0.001**2] * 3)
+    covariance[0, 3] = covariance[3, 0] = 0.5e-6  # a correlation: the rotation block alone differs from the whole
+    record = TrackRecord(PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480), np.zeros((1, 3)))
+    record.add(0, 0, "FINE", estimate, truth, covariance)
+    row = record.scored()[0]
+    e = np.array([0.002, 0, 0, 0, 0.003, 0])
+    assert row.nees == pytest.approx(e @ np.linalg.solve(covariance, e), rel=1e-6)
+    assert row.nees_rotation == pytest.approx(4.0, rel=1e-6)  # (0.002 / 0.001)^2
+    assert record.summarize().nees_rotation_mean == row.nees_rotation
 
 
 def correlated_nees(rng, n, phi, scale=1.0):

@@ -51,6 +51,7 @@ class FrameRow:
     ori_deg: float = math.nan
     jitter_px: float = math.nan  # against the previous frame, when both are scored
     nees: float = math.nan  # e^T covariance^-1 e of the pose error e (wire convention)
+    nees_rotation: float = math.nan  # the same of its rotation part alone (3 for a consistent tracker)
     index: int = 0  # position in the record
 
 
@@ -66,6 +67,7 @@ class Summary:
     jitter_px: float = math.nan  # RMS over frames and model points
     nees_mean: float = math.nan  # over scored frames with a covariance (6 for a consistent tracker)
     nees_frames: int = 0
+    nees_rotation_mean: float = math.nan  # the rotation block's alone (3): where a NEES off 6 comes from
     nees_lo: float = math.nan  # the 95 % interval of nees_mean for a consistent tracker, allowing for
     nees_hi: float = math.nan  # correlated frames (flextrack.evaluation.consistency)
     fine_frames: int = 0
@@ -125,6 +127,7 @@ class TrackRecord:
                 if row.covariance is not None:
                     e = wire.pose_error(row.T_CO, row.T_gt)
                     row.nees = float(e @ np.linalg.solve(row.covariance, e))
+                    row.nees_rotation = float(e[:3] @ np.linalg.solve(row.covariance[:3, :3], e[:3]))
         return [r for r in self.rows if r.T_CO is not None and r.T_gt is not None]
 
     def _follows(self, earlier: FrameRow, row: FrameRow) -> bool:
@@ -151,7 +154,8 @@ class TrackRecord:
             proj_px=mean(proj), proj_px_p95=float(np.percentile(proj, 95)) if len(proj) else math.nan,
             proj_px_max=float(proj.max()) if len(proj) else math.nan,
             jitter_px=float(np.sqrt(np.mean(jitter ** 2))) if len(jitter) else math.nan,
-            nees_mean=mean(nees), nees_frames=len(nees), nees_lo=interval.lo, nees_hi=interval.hi, fine_frames=counts.get("FINE", 0),
+            nees_mean=mean(nees), nees_frames=len(nees),
+            nees_rotation_mean=mean([r.nees_rotation for r in scored if math.isfinite(r.nees_rotation)]), nees_lo=interval.lo, nees_hi=interval.hi, fine_frames=counts.get("FINE", 0),
             worst_fine_px=max(fine) if fine else math.nan, status_counts=counts,
             requests=self.requests, responses=self.responses, failures=self.failures,
             bad_covariances=self.bad_covariances, time_offset_ms=self.time_offset_ms)
