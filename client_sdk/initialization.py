@@ -9,7 +9,7 @@ g_O = R_OB g_B; the velocity starts at zero.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -25,8 +25,18 @@ class InitEstimate:
     gyro_std: float  # RMS deviation from the mean over the window, rad/s
     accel_std: float  # m/s^2
     still: bool
-    gyro_mean_std: float  # standard error of the mean gyro (the bias), per axis, rad/s
-    accel_mean_std: float  # the same of the mean specific force, m/s^2
+    window: np.ndarray = field(repr=False)  # (N, 6) gyro, accel samples the means are of
+
+    @property
+    def gyro_mean_std(self) -> float:
+        """Standard error of the mean gyro (the bias), per axis, rad/s; computed when asked (the filter's
+        still start), not on every initialising frame."""
+        return standard_error_of_mean(self.window[:, 0:3])
+
+    @property
+    def accel_mean_std(self) -> float:
+        """The same of the mean specific force, m/s^2."""
+        return standard_error_of_mean(self.window[:, 3:6])
 
 
 def estimate(samples: list[tuple], options: TrackerOptions) -> InitEstimate:
@@ -36,8 +46,7 @@ def estimate(samples: list[tuple], options: TrackerOptions) -> InitEstimate:
     gyro_std = float(np.sqrt(((a[:, 0:3] - mean[0:3]) ** 2).sum(axis=1).mean()))
     accel_std = float(np.sqrt(((a[:, 3:6] - mean[3:6]) ** 2).sum(axis=1).mean()))
     still = gyro_std < options.still_gyro_std and accel_std < options.still_accel_std
-    return InitEstimate(-mean[3:6], mean[0:3], gyro_std, accel_std, still, standard_error_of_mean(a[:, 0:3]),
-                        standard_error_of_mean(a[:, 3:6]))
+    return InitEstimate(-mean[3:6], mean[0:3], gyro_std, accel_std, still, a)
 
 
 def assess(buffer: ImuBuffer, t_ns: int, options: TrackerOptions) -> tuple[InitEstimate | None, str]:

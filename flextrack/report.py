@@ -203,6 +203,12 @@ def render_filter(folder: Path) -> str:
         f"`{RESULTS_DIR.as_posix()}/{folder.name}/`."])
 
 
+def _means_by_motion(rows: list[dict[str, str]], column: str) -> str:
+    """"translational 5.46, circular 6.14": a column's mean per motion program."""
+    motions = dict.fromkeys(r["motion"] for r in rows)
+    return ", ".join(f"{m} {np.mean([_num(r[column]) for r in rows if r['motion'] == m]):.2f}" for m in motions)
+
+
 @section("bound")
 def render_bound(folder: Path) -> str:
     """The Noisy Table 2 cells beside their Riccati bound (flextrack experiment bound)."""
@@ -223,9 +229,6 @@ def render_bound(folder: Path) -> str:
                      f"{m[1] / m[3]:.2f} |")
     a = np.array(means)
     runs = np.array([[_num(r[c]) for c in columns] for r in rows])
-    def nees_by_motion(column: str) -> str:
-        motions = dict.fromkeys(r["motion"] for r in rows)
-        return ", ".join(f"{m} {np.mean([_num(r[column]) for r in rows if r['motion'] == m]):.2f}" for m in motions)
 
     return "\n".join([
         (f"The Noisy cells of Table 2 (seeds {', '.join(map(str, seeds))}, means over seeds), mean 2D error in px over the frames from "
@@ -238,9 +241,9 @@ def render_bound(folder: Path) -> str:
          f"measured / bound is {runs[:, 1].mean() / runs[:, 3].mean():.3f} (per run "
          f"{_range(runs[:, 1] / runs[:, 3])}) and predicted / bound {runs[:, 2].mean() / runs[:, 3].mean():.3f}. "
          f"The filter's mean NEES over all {len(rows)} runs (all frames) is "
-         f"{np.mean([_num(r['nees_mean']) for r in rows]):.2f} for 6 ({nees_by_motion('nees_mean')}), "
+         f"{np.mean([_num(r['nees_mean']) for r in rows]):.2f} for 6 ({_means_by_motion(rows, 'nees_mean')}), "
          f"its rotation block's {np.mean([_num(r['nees_rotation']) for r in rows]):.2f} for 3 "
-         f"({nees_by_motion('nees_rotation')})."),
+         f"({_means_by_motion(rows, 'nees_rotation')})."),
         "", provenance_line(prov, f"flextrack experiment bound --seeds {len(seeds)} --out out/bound") + " Files: "
         f"`{RESULTS_DIR.as_posix()}/{folder.name}/`."])
 

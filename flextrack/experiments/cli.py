@@ -99,7 +99,7 @@ def run(args) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     seed_list = list(range(args.seeds)) if grid or args.experiment == "filter" else [args.seed]
-    if grid and args.backend == "oracles":
+    if args.experiment == "bound" or (args.experiment == "table2" and args.backend == "oracles"):
         args.jobs = args.jobs or common.default_jobs()  # the provenance records how many ran at once
     record = of_args(args, command="flextrack experiment " + args.experiment, seed_list=seed_list)  # at the start
     fps = tuple(int(f) for f in args.fps) if args.fps and grid else None

@@ -124,11 +124,20 @@ class TrackRecord:
                 # jitter only between frames that follow each other (a gap: the shake is not defined)
                 if k == 0 or self._follows(pending[k - 1], row):
                     row.jitter_px = float(jitter[k])
-                if row.covariance is not None:
-                    e = wire.pose_error(row.T_CO, row.T_gt)
-                    row.nees = float(e @ np.linalg.solve(row.covariance, e))
-                    row.nees_rotation = float(e[:3] @ np.linalg.solve(row.covariance[:3, :3], e[:3]))
+            self._score_nees([r for r in pending if r.covariance is not None])
         return [r for r in self.rows if r.T_CO is not None and r.T_gt is not None]
+
+    @staticmethod
+    def _score_nees(rows: list[FrameRow]) -> None:
+        """Each row's NEES and its rotation block's, in one batched solve each."""
+        if not rows:
+            return
+        e = np.stack([wire.pose_error(r.T_CO, r.T_gt) for r in rows])[..., None]  # (F, 6, 1)
+        covariances = np.stack([r.covariance for r in rows])
+        nees = (e * np.linalg.solve(covariances, e)).sum(axis=(1, 2))
+        nees_rotation = (e[:, :3] * np.linalg.solve(covariances[:, :3, :3], e[:, :3])).sum(axis=(1, 2))
+        for row, value, value_rotation in zip(rows, nees, nees_rotation):
+            row.nees, row.nees_rotation = float(value), float(value_rotation)
 
     def _follows(self, earlier: FrameRow, row: FrameRow) -> bool:
         return row.index == earlier.index + 1
@@ -155,7 +164,8 @@ class TrackRecord:
             proj_px_max=float(proj.max()) if len(proj) else math.nan,
             jitter_px=float(np.sqrt(np.mean(jitter ** 2))) if len(jitter) else math.nan,
             nees_mean=mean(nees), nees_frames=len(nees),
-            nees_rotation_mean=mean([r.nees_rotation for r in scored if math.isfinite(r.nees_rotation)]), nees_lo=interval.lo, nees_hi=interval.hi, fine_frames=counts.get("FINE", 0),
+            nees_rotation_mean=mean([r.nees_rotation for r in scored if math.isfinite(r.nees_rotation)]),
+            nees_lo=interval.lo, nees_hi=interval.hi, fine_frames=counts.get("FINE", 0),
             worst_fine_px=max(fine) if fine else math.nan, status_counts=counts,
             requests=self.requests, responses=self.responses, failures=self.failures,
             bad_covariances=self.bad_covariances, time_offset_ms=self.time_offset_ms)
