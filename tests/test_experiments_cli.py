@@ -133,9 +133,10 @@ def test_bound_puts_the_filter_beside_the_riccati_bound(tmp_path, capsys):
     assert main(["experiment", "bound", "--out", str(out), "--duration", "8", "--fps", "30", "--in-process"]) == 0
     rows = _csv(out / "bound.csv")
     assert list(rows[0]) == ["motion", "level", "fps", "seed", "proj_px_all", "proj_px", "predicted_px", "bound_px",
-                             "nees_mean", "nees_rotation"]
+                             "nees_mean", "nees_rotation", "nees_lo", "nees_hi"]
     assert len(rows) == 6
     assert all(0 < float(r["nees_rotation"]) < float(r["nees_mean"]) for r in rows)  # a part of the whole
+    assert all(0 < float(r["nees_lo"]) < 6 < float(r["nees_hi"]) for r in rows)  # each run's own interval
     for r in rows:
         bound, predicted = float(r["bound_px"]), float(r["predicted_px"])
         assert 0.3 < bound < 3.0

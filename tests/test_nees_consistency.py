@@ -1,11 +1,13 @@
 """A run's NEES, whole and its rotation block's, and the interval of its mean that allows for correlated
-frames: right coverage on series whose truth is known."""
+frames (from the series' autocorrelation, or from the filter's error dynamics): right coverage on series
+whose truth is known."""
 
 import numpy as np
 import pytest
 
+from client_sdk.eskf.error_dynamics import ErrorDynamics
 from flextrack.autocorrelation import autocorrelation_time
-from flextrack.evaluation.consistency import nees_mean_interval
+from flextrack.evaluation.consistency import model_nees_interval, nees_mean_interval
 from flextrack.geometry import so3
 from flextrack.geometry.camera import PinholeCamera
 from flextrack.runners.results import TrackRecord
@@ -57,3 +59,36 @@ def test_an_overconfident_estimator_fails():
     x = correlated_nees(np.random.default_rng(2), 3000, 0.9, scale=2.0)  # covariance half the truth
     interval = nees_mean_interval(x)
     assert not interval.holds(x.mean()) and x.mean() > interval.hi
+
+
+def ar1_dynamics(n, phi):
+    """The error dynamics of `correlated_nees`: one frame per anchor, e_t = phi e_(t-1) + noise, P = I."""
+    dynamics = ErrorDynamics()
+    dynamics.restart(np.eye(6))
+    for t in range(n):
+        if t:
+            dynamics.link(phi * np.eye(6), np.eye(6))
+        dynamics.frame(t, np.eye(6))
+    return dynamics
+
+
+def test_the_model_interval_is_the_one_the_error_dynamics_imply():
+    n, phi = 400, 0.9
+    interval = model_nees_interval([(t, np.eye(6)) for t in range(n)], ar1_dynamics(n, phi))
+    lags = np.abs(np.subtract.outer(np.arange(n), np.arange(n)))
+    assert interval.n_eff == pytest.approx(n * n / np.sum(phi ** (2 * lags)), rel=1e-6)
+    independent = model_nees_interval([(t, np.eye(6)) for t in range(n)], ar1_dynamics(n, 0.0))
+    assert independent.n_eff == pytest.approx(n)  # no link: the usual interval
+
+
+def test_the_model_interval_covers_a_consistent_estimator_about_95_percent_of_the_time():
+    """Runs as long as the errors' correlation (here 0.995 per frame): the series' own autocorrelation cannot
+    see it and its interval is far too narrow, the model's is right."""
+    rng = np.random.default_rng(3)
+    n, phi = 600, 0.995
+    interval = model_nees_interval([(t, np.eye(6)) for t in range(n)], ar1_dynamics(n, phi))
+    runs = [correlated_nees(rng, n, phi) for _ in range(300)]
+    covered = np.mean([interval.holds(x.mean()) for x in runs])
+    from_series = np.mean([nees_mean_interval(x).holds(x.mean()) for x in runs])
+    assert 0.9 <= covered <= 0.99, covered
+    assert from_series < 0.8, from_series

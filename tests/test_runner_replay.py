@@ -123,3 +123,20 @@ def test_a_backend_claiming_micrometres_does_not_break_the_filter_on_fast_motion
     assert s.proj_px < 0.1 and s.worst_fine_px < 0.5, s
     assert 5.0 < s.nees_mean < 7.0, s
     assert s.status_counts.get("WRONG_POSE", 0) == 0, s.status_counts
+
+
+def test_the_filter_s_error_dynamics_change_nothing_and_give_the_nees_interval(phone_seq):
+    registry = oracle_registry([phone_seq.root], noise_seed=5)
+    vertices = session.model_vertices(phone_seq)
+    options = ReplayOptions(network=NetworkOptions(seed=5), estimator="noisy")
+    kept = replay(phone_seq, InProcessBackend(registry, options.network), vertices, TrackerOptions(), options)
+    plain = replay(phone_seq, InProcessBackend(registry, options.network), vertices, TrackerOptions(),
+                   dataclasses.replace(options, record_error_dynamics=False))
+    assert _rows(kept) == _rows(plain)
+    assert [r.covariance.tobytes() for r in kept.rows if r.covariance is not None] == \
+        [r.covariance.tobytes() for r in plain.rows if r.covariance is not None]
+    with_model, from_series = kept.summarize(), plain.summarize()
+    assert plain.error_dynamics is None and from_series.nees_interval_from == "autocorrelation"
+    assert with_model.nees_interval_from == "model" and with_model.nees_mean == from_series.nees_mean
+    assert with_model.nees_lo < 6 < with_model.nees_hi
+    assert len(kept.error_dynamics.anchors) > 50  # one per applied answer

@@ -83,6 +83,11 @@ class FilterOptions:
     jitter 0.17 px on the peer cells of `flextrack experiment filter`)."""
     ease_min_frames: float = 1.5
 
+    # --- Evaluation ---
+    record_error_dynamics: bool = False
+    """Keep the linearised error dynamics (`eskf.error_dynamics`), from which the evaluation derives the interval
+    of a run's mean NEES; one 19x19 product more per IMU sample. The runners switch it on."""
+
     # --- Status from the covariance ---
     max_sigma_px: float = 6.0
     """A pose whose 1-sigma uncertainty, projected on the object's box corners (RMS, px), exceeds
@@ -108,11 +113,3 @@ class FilterOptions:
             raise ValueError("filter option noise_window_samples must be >= 1")
         if self.max_rejections < 1:
             raise ValueError("filter option max_rejections must be >= 1")
-
-    @classmethod
-    def from_imu_noise(cls, noise, **overrides) -> FilterOptions:
-        """Options with the four densities of a Kalibr `ImuNoise` (formats.kalibr) and any overrides."""
-        return cls(gyroscope_noise_density=noise.gyroscope_noise_density,
-                   gyroscope_random_walk=noise.gyroscope_random_walk,
-                   accelerometer_noise_density=noise.accelerometer_noise_density,
-                   accelerometer_random_walk=noise.accelerometer_random_walk, **overrides)

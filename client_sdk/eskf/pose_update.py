@@ -39,6 +39,7 @@ class UpdateResult:
     chi2: float  # r^T S^-1 r
     state: FilterState | None  # the corrected state when accepted
     td: float  # the corrected time offset (s)
+    closed_loop: np.ndarray | None = None  # I - K H, what the update does to the error (when accepted)
 
 
 def pose_jacobian(x: tuple, R_CB: np.ndarray, w: tuple, v: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -113,4 +114,4 @@ def update(state: FilterState, td: float, T_CO_meas: np.ndarray, sigma: np.ndarr
     cov = IKH @ state.cov @ IKH.T + K @ sigma @ K.T
     cov = 0.5 * (cov + cov.T)
     x, c, td = inject(state.x, state.c, td, dx, gravity_state)
-    return UpdateResult(True, chi2, FilterState(x, c, cov), td)
+    return UpdateResult(True, chi2, FilterState(x, c, cov), td, IKH)

@@ -108,6 +108,11 @@ class CovariancePropagator:
         phi.ravel()[_PHI_INDEX] = values  # a view: ~1 us less than np.put with a list
         return phi
 
+    @property
+    def last_transition(self) -> np.ndarray:
+        """Phi of the last `step` with a positive interval (a view, overwritten by the next)."""
+        return self._phi
+
     def step(self, cov: np.ndarray, x: tuple, c: tuple, t0_ns: int, t1_ns: int, s0: tuple, s1: tuple) -> np.ndarray:
         """The covariance at t1 from the one at t0; s0, s1 the raw IMU samples around the interval."""
         dt = (t1_ns - t0_ns) * NS

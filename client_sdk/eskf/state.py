@@ -35,6 +35,8 @@ class FilterState:
     x: tuple
     c: tuple
     cov: np.ndarray  # (N, N)
+    phi: np.ndarray | None = None  # (N, N) the error transition from the last anchor, kept only while
+    # the filter records its error dynamics (`eskf.error_dynamics`)
 
 
 def inject(x: tuple, c: tuple, td: float, dx: np.ndarray, gravity_state: bool = True) -> tuple[tuple, tuple, float]:

@@ -32,6 +32,7 @@ import numpy as np
 
 from client_sdk import initialization
 from client_sdk import state as state_codec
+from client_sdk.eskf.error_dynamics import ErrorDynamics
 from client_sdk.eskf.initializer import initial_state
 from client_sdk.eskf.pose_update import pose_covariance, pose_jacobian, update
 from client_sdk.eskf.propagator import CovariancePropagator
@@ -79,6 +80,7 @@ class FilterTracker(TrackerBase):
         self._ease = (np.zeros(6), 0)  # (pose offset still to ease in, camera time it was set)
         self._frame_interval_s = 0.0
         self.last_chi2: float | None = None
+        self.error_dynamics = ErrorDynamics() if fo.record_error_dynamics else None
 
     # ------------------------------------------------------------------ properties
     @property
@@ -133,7 +135,11 @@ class FilterTracker(TrackerBase):
 
     def _step(self, st: FilterState, t0: int, t1: int, s0: tuple, s1: tuple) -> FilterState:
         x = step_midpoint(st.x, st.c, t0, t1, s0, s1)
-        return FilterState(x, st.c, self._prop.step(st.cov, x, st.c, t0, t1, s0, s1))
+        cov = self._prop.step(st.cov, x, st.c, t0, t1, s0, s1)
+        phi = st.phi
+        if phi is not None and t1 > t0:  # recording the error dynamics
+            phi = self._prop.last_transition @ phi
+        return FilterState(x, st.c, cov, phi)
 
     def _base_at(self, t: int) -> tuple[int, int, FilterState] | None:
         """(buffer index at or before t, base time, base state): the anchor or the stored state before t."""
@@ -198,9 +204,8 @@ class FilterTracker(TrackerBase):
         T[:3, 3] = self._t_CB - R_CO @ np.array(x[9:12])
         return T
 
-    def _pose_covariance(self, st: FilterState, t_imu: int) -> np.ndarray:
-        _, _, H = pose_jacobian(st.x, self._R_CB, self._rate_at(t_imu, st.c), st.x[12:15])
-        return pose_covariance(H, st.cov)
+    def _pose_jacobian(self, st: FilterState, t_imu: int) -> np.ndarray:
+        return pose_jacobian(st.x, self._R_CB, self._rate_at(t_imu, st.c), st.x[12:15])[2]
 
     def pose_at(self, t_ns: int) -> np.ndarray | None:
         """T_CO at camera time t_ns (None before initialisation; ValueError before the buffer)."""
@@ -221,7 +226,7 @@ class FilterTracker(TrackerBase):
         st = self._full_at(t_imu)
         if st is None:
             raise ValueError(f"no state at {t} ns: before tracking started or older than the IMU buffer")
-        return self._pose_covariance(st, t_imu)
+        return pose_covariance(self._pose_jacobian(st, t_imu), st.cov)
 
     def sigma_px(self, T_CO: np.ndarray, cov: np.ndarray) -> float:
         """RMS over the box corners of the 1-sigma 2D uncertainty (px) a pose covariance implies."""
@@ -261,7 +266,10 @@ class FilterTracker(TrackerBase):
         T_CO = self._eased(self._T_CO(st.x), left)
         # the shown pose is the filter's minus a known offset: its mean-square error about the truth is the
         # filter's covariance plus the offset's outer product (what a NEES of the shown pose must be read on)
-        cov = self._pose_covariance(st, t_imu) + np.outer(left, left)
+        H = self._pose_jacobian(st, t_imu)
+        cov = pose_covariance(H, st.cov) + np.outer(left, left)
+        if self.error_dynamics is not None:
+            self.error_dynamics.frame(t, H @ st.phi)
         status, detail = Status.FINE, "tracking"
         if o.pia:
             uv = self.inspector.project(T_CO)
@@ -353,7 +361,11 @@ class FilterTracker(TrackerBase):
         t_shown = self._last_frame_t
         before = self._T_CO(self._nominal_at(self._imu_time(t_shown)).x) if t_shown is not None else None
         self._td = res.td
-        self._set_anchor(tau, res.state)
+        new = res.state
+        if self.error_dynamics is not None:
+            self.error_dynamics.link(res.closed_loop @ st.phi, new.cov)
+            new = replace(new, phi=np.eye(new.cov.shape[0]))
+        self._set_anchor(tau, new)
         if before is not None and fo.ease_s > 0:
             after = self._T_CO(self._nominal_at(self._imu_time(t_shown)).x)
             jump = np.concatenate([so3.log(after[:3, :3] @ before[:3, :3].T), after[:3, 3] - before[:3, 3]])
@@ -369,7 +381,11 @@ class FilterTracker(TrackerBase):
         self._rejected = 0
         self._td = self.options.filter.time_offset_s
         self._anchor = None
-        self._set_anchor(tau, initial_state(x_pose, sigma, window, self._R_CB, est, self.options.filter))
+        st = initial_state(x_pose, sigma, window, self._R_CB, est, self.options.filter)
+        if self.error_dynamics is not None:
+            self.error_dynamics.restart(st.cov)
+            st = replace(st, phi=np.eye(st.cov.shape[0]))
+        self._set_anchor(tau, st)
 
     def _set_anchor(self, tau: int, st: FilterState) -> None:
         """The state at tau from an answer; every buffered sample after tau re-propagated from it."""

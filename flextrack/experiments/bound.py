@@ -36,7 +36,7 @@ from flextrack.runners.replay import ReplayOptions
 from flextrack.runners.results import TrackRecord, metric_points
 
 HEADER = ["motion", "level", "fps", "seed", "proj_px_all", "proj_px", "predicted_px", "bound_px", "nees_mean",
-          "nees_rotation"]
+          "nees_rotation", "nees_lo", "nees_hi"]
 CLAIMING = "exact_claiming_noisy"  # exact answers, the noisy oracle's covariance (its floor is that covariance)
 LIMIT_PX = 1.0  # the fusion issue's criterion for every Noisy cell
 FRAMES_DRAWN = 400  # frames per run whose expected error is drawn (evenly spaced), 32 draws each
@@ -73,7 +73,8 @@ def run_cell(cell: common.GridCell) -> list:
         ideal_run = oracle.run(ideal, common.FILTER, replace(options, estimator=CLAIMING))
     s = measured.summarize()
     return [cell.motion, cell.level, cell.fps, cell.seed, s.proj_px, float(np.mean([r.proj_px for r in steady(measured)])),
-            predicted_px(measured, cell.seed), predicted_px(ideal_run, cell.seed), s.nees_mean, s.nees_rotation_mean]
+            predicted_px(measured, cell.seed), predicted_px(ideal_run, cell.seed), s.nees_mean, s.nees_rotation_mean,
+            s.nees_lo, s.nees_hi]
 
 
 def run(out: Path, seeds: list[int], duration_s: float = 30.0, in_process: bool = False, fps_list=paper.FPS,

@@ -20,7 +20,8 @@ from flextrack.runners.replay import ReplayOptions
 
 HEADER = ["motion", "level", "fps", "backend", "seed", "pos_mm", "ori_deg", "proj_px", "paper_pos_mm", "paper_ori_deg",
           "paper_proj_px", "jitter_px", "nees_mean", "nees_lo", "nees_hi", "worst_fine_px"]
-# nees_lo, nees_hi: the 95 % interval of nees_mean for a consistent tracker, allowing for correlated frames
+# nees_lo, nees_hi: the 95 % interval of nees_mean for a consistent tracker, allowing for correlated frames (from
+# the filter's own error dynamics, flextrack.evaluation.consistency)
 GT_LIMIT_PX, NOISY_LIMIT_PX = 1.0, 2.5  # what we hold ourselves to (the paper: at most 0.69 and 2.33)
 
 

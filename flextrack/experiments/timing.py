@@ -62,7 +62,7 @@ def run(out: Path, seed: int = 0, duration_s: float = 30.0, repeats: int = 3, in
                 timed.append(TimedTracker(tracker))
                 return timed[-1]
 
-            options = ReplayOptions(network=NetworkOptions(seed=seed), estimator="noisy")
+            options = ReplayOptions(network=NetworkOptions(seed=seed), estimator="noisy", record_error_dynamics=False)
             with oracle.client(options) as backend:
                 replay(seq, backend, model_vertices(seq), TrackerOptions(), options, wrap=wrap)
             for op in OPERATIONS:

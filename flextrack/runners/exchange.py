@@ -21,15 +21,17 @@ from flextrack.runners.results import TrackRecord
 from flextrack.v1 import pose_estimation_pb2 as pb
 
 
-def tracker_for(seq: Sequence, vertices_O: np.ndarray, options: TrackerOptions | None):
-    """The tracker core the options name; the filter's IMU densities are the sequence's (imu0/sensor.yaml)."""
+def tracker_for(seq: Sequence, vertices_O: np.ndarray, options: TrackerOptions | None,
+                record_error_dynamics: bool = True):
+    """The tracker core the options name; the filter's IMU densities are the sequence's (imu0/sensor.yaml), and it
+    keeps its error dynamics for the NEES interval unless told not to (the timing experiment)."""
     options = options or TrackerOptions()
     if options.fusion == "filter":
         n = seq.imu_noise
         options = replace(options, filter=replace(
             options.filter, gyroscope_noise_density=n.gyroscope_noise_density,
             gyroscope_random_walk=n.gyroscope_random_walk, accelerometer_noise_density=n.accelerometer_noise_density,
-            accelerometer_random_walk=n.accelerometer_random_walk))
+            accelerometer_random_walk=n.accelerometer_random_walk, record_error_dynamics=record_error_dynamics))
     return create_tracker(options, seq.camera, seq.T_BC, bbox_corners(vertices_O))
 
 
@@ -60,8 +62,9 @@ def apply_answer(tracker, request_id: int, response: pb.EstimateResponse, record
 
 
 def finish(tracker, record: TrackRecord) -> TrackRecord:
-    """What the tracker learned that the record reports: the filter's camera-IMU time offset."""
+    """What the tracker learned that the record reports: the filter's camera-IMU time offset and error dynamics."""
     offset = getattr(tracker, "time_offset_s", None)
     if offset is not None:
         record.time_offset_ms = offset * 1e3
+    record.error_dynamics = getattr(tracker, "error_dynamics", None)
     return record

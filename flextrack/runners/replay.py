@@ -41,6 +41,7 @@ class ReplayOptions:
     backend_compute_ms: float = 0.0  # the paper: "the backend task started instantly" (oracles)
     estimator: str = "gt"  # registry name on the server
     session_id: str = "replay"
+    record_error_dynamics: bool = True  # the filter's, for the NEES interval (off: timing the tracker alone)
 
 
 def replay(seq: Sequence, backend, vertices_O: np.ndarray, tracker_options: TrackerOptions | None = None,
@@ -53,7 +54,7 @@ def replay(seq: Sequence, backend, vertices_O: np.ndarray, tracker_options: Trac
     `frame_jpeg(frame_id)` gives the image a request carries (default: the 90 kB stand-in); `progress` is
     called after every frame (it decides itself how often to show anything).
     """
-    tracker = tracker_for(seq, vertices_O, tracker_options)
+    tracker = tracker_for(seq, vertices_O, tracker_options, options.record_error_dynamics)
     if wrap is not None:
         tracker = wrap(tracker)
     slowdown = Slowdown(options.slowdown, options.costs)

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from flextrack import wire
-from flextrack.evaluation.consistency import nees_mean_interval
+from flextrack.evaluation.consistency import model_nees_interval, nees_mean_interval
 from flextrack.formats import tum
 from flextrack.geometry import metrics
 from flextrack.geometry.camera import PinholeCamera
@@ -70,6 +70,7 @@ class Summary:
     nees_rotation_mean: float = math.nan  # the rotation block's alone (3): where a NEES off 6 comes from
     nees_lo: float = math.nan  # the 95 % interval of nees_mean for a consistent tracker, allowing for
     nees_hi: float = math.nan  # correlated frames (flextrack.evaluation.consistency)
+    nees_interval_from: str = ""  # "model": the filter's error dynamics; "autocorrelation": the NEES series'
     fine_frames: int = 0
     worst_fine_px: float = math.nan  # the largest 2D error of a frame called FINE
     status_counts: dict[str, int] = field(default_factory=dict)
@@ -90,6 +91,7 @@ class TrackRecord:
     failures: int = 0
     bad_covariances: int = 0
     time_offset_ms: float = math.nan
+    error_dynamics: object | None = None  # the filter's, when it kept them (client_sdk.eskf.error_dynamics)
 
     def __post_init__(self) -> None:
         self._points = metric_points(self.vertices_O)
@@ -155,7 +157,12 @@ class TrackRecord:
         def mean(values) -> float:
             return float(np.mean(values)) if len(values) else math.nan
 
-        interval = nees_mean_interval(nees)
+        with_nees = [r for r in scored if math.isfinite(r.nees)]
+        dynamics = self.error_dynamics
+        if dynamics is not None and all(r.t_ns in dynamics.frames for r in with_nees):
+            interval, source = model_nees_interval([(r.t_ns, r.covariance) for r in with_nees], dynamics), "model"
+        else:
+            interval, source = nees_mean_interval(nees), "autocorrelation"
 
         return Summary(
             frames=len(self.rows), scored_frames=len(scored),
@@ -165,7 +172,7 @@ class TrackRecord:
             jitter_px=float(np.sqrt(np.mean(jitter ** 2))) if len(jitter) else math.nan,
             nees_mean=mean(nees), nees_frames=len(nees),
             nees_rotation_mean=mean([r.nees_rotation for r in scored if math.isfinite(r.nees_rotation)]),
-            nees_lo=interval.lo, nees_hi=interval.hi, fine_frames=counts.get("FINE", 0),
+            nees_lo=interval.lo, nees_hi=interval.hi, nees_interval_from=source if len(nees) else "", fine_frames=counts.get("FINE", 0),
             worst_fine_px=max(fine) if fine else math.nan, status_counts=counts,
             requests=self.requests, responses=self.responses, failures=self.failures,
             bad_covariances=self.bad_covariances, time_offset_ms=self.time_offset_ms)
