@@ -5,6 +5,7 @@
     result = tracker.add_frame(t_ns)             # pose, its covariance, status; maybe a request
     tracker.on_backend_response(request_id, capture_t_ns, T_CO, ok, covariance)   # update at t0
     tracker.pose_at(t_ns), tracker.pose_covariance_at(t_ns)
+    tracker.error_dynamics                       # with FilterOptions.record_error_dynamics: for the NEES interval
 
 What differs from the paper's PRM (docs/tracker.md has the equations):
 
