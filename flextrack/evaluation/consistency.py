@@ -48,38 +48,31 @@ def model_nees_interval(frames: list[tuple[int, np.ndarray]], dynamics, dof: int
                         level: float = 0.95) -> MeanInterval:
     """As `nees_mean_interval`, n_eff from the filter's error dynamics (an `ErrorDynamics`): `frames` are the
     scored frames' (camera time, reported 6x6 covariance), each of which the record must hold."""
-    by_anchor: dict[int, list[np.ndarray]] = {}
-    for t_ns, covariance in frames:
-        anchor, pose_map = dynamics.frames[t_ns]
-        by_anchor.setdefault(anchor, []).append(np.linalg.solve(np.linalg.cholesky(covariance), pose_map))
     n = len(frames)
     if n == 0:
         return MeanInterval(0.0, float("nan"), float("nan"))
+    links = [dynamics.frames[t_ns] for t_ns, _ in frames]
+    anchor_of = np.array([anchor for anchor, _ in links])
+    L = np.linalg.cholesky(np.stack([covariance for _, covariance in frames]))
+    A = np.linalg.solve(L, np.stack([pose_map for _, pose_map in links]))  # whitened pose maps, (n, dof, N)
     total = float(n * dof)  # each frame with itself: |I_dof|^2
-    weights = {}  # per anchor, S_k = sum of A_t^T A_t over its frames (A_t the whitened pose map)
-    for k, maps in by_anchor.items():
-        A = np.stack(maps)
+    weights = {}  # per anchor, S_k = sum of A_t^T A_t over its frames
+    for k in np.unique(anchor_of):
+        A_k = A[anchor_of == k]
         P = dynamics.anchors[k][1]
-        S = np.einsum("fij,fik->jk", A, A)
-        C = A @ P @ A.transpose(0, 2, 1)  # each frame's own C_tt, left out of the pairs below
+        S = np.einsum("fij,fik->jk", A_k, A_k)
+        C = A_k @ P @ A_k.transpose(0, 2, 1)  # each frame's own C_tt, left out of the pairs below
         total += float(np.einsum("ij,jk,kl,li->", S, P, S, P)) - float(np.sum(C * C))
-        weights[k] = S
+        weights[int(k)] = S
     # frames on anchors k > j: C_ts = A_t M_kj P_j A_s^T with M_kj = Psi_k ... Psi_j+1, so the pairs add up to
     # tr(Y_j P_j S_j P_j), Y_j = sum_k M_kj^T S_k M_kj = Psi_j+1^T (S_j+1 + Y_j+1) Psi_j+1: one pass back
-    anchors = dynamics.anchors
-    Y = None
-    for j in range(len(anchors) - 1, -1, -1):
-        if j in weights and Y is not None:
-            P = anchors[j][1]
+    zero = np.zeros((A.shape[2], A.shape[2]))
+    Y = zero
+    for j in range(len(dynamics.anchors) - 1, -1, -1):
+        psi, P = dynamics.anchors[j]
+        if j in weights:
             total += 2.0 * float(np.einsum("ij,jk,kl,li->", Y, P, weights[j], P))
-        psi = anchors[j][0]
-        if psi is None:  # a (re)start: nothing links it to the anchors before
-            Y = None
-            continue
-        inner = weights.get(j)
-        if Y is not None:
-            inner = Y if inner is None else inner + Y
-        Y = None if inner is None else psi.T @ inner @ psi
+        Y = zero if psi is None else psi.T @ (weights.get(j, zero) + Y) @ psi  # None: a (re)start, no link
     return _interval(n * n * dof / total, dof, level)
 
 

@@ -148,7 +148,8 @@ class TrackRecord:
         scored = self.scored()  # fills in the errors of every frame
         proj = np.array([r.proj_px for r in scored])
         jitter = np.array([r.jitter_px for r in scored if math.isfinite(r.jitter_px)])
-        nees = np.array([r.nees for r in scored if math.isfinite(r.nees)])
+        with_nees = [r for r in scored if math.isfinite(r.nees)]
+        nees = np.array([r.nees for r in with_nees])
         fine = [r.proj_px for r in scored if r.status == "FINE"]
         counts: dict[str, int] = {}
         for r in self.rows:
@@ -157,7 +158,6 @@ class TrackRecord:
         def mean(values) -> float:
             return float(np.mean(values)) if len(values) else math.nan
 
-        with_nees = [r for r in scored if math.isfinite(r.nees)]
         dynamics = self.error_dynamics
         if dynamics is not None and all(r.t_ns in dynamics.frames for r in with_nees):
             interval, source = model_nees_interval([(r.t_ns, r.covariance) for r in with_nees], dynamics), "model"
