@@ -3,12 +3,16 @@
 #   docker run -p 127.0.0.1:50051:50051 flextrack-backend   # unauthenticated: publish it on loopback (CMD below)
 ARG BASE_IMAGE=python:3.11-slim
 
-# Stage 1: the wheel, built from the source tree (the default object, the shipped model and the default config
-# ride in it as package data).
+# Stage 1: the wheel, built from the source tree, with the default object generated into it first (it is code,
+# not tracked; generating it needs the simulator's numpy, trimesh, scipy and matplotlib, in a throwaway venv), so
+# that the object, the shipped model and the default config ride in the wheel as package data.
 FROM ${BASE_IMAGE} AS wheel
 WORKDIR /src
 COPY . /src
-RUN python3 -m pip wheel --no-cache-dir --no-deps --wheel-dir /wheels .
+RUN python3 -m venv /tmp/gen \
+ && /tmp/gen/bin/pip install --no-cache-dir -q numpy trimesh scipy matplotlib \
+ && /tmp/gen/bin/python -m flextrack.simulator.default_object --out flextrack/assets/objects/default/models \
+ && python3 -m pip wheel --no-cache-dir --no-deps --wheel-dir /wheels .
 
 # Stage 2: the backend, installed from that wheel alone: no source tree, no editable install.
 FROM ${BASE_IMAGE}

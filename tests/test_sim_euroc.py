@@ -6,11 +6,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from flextrack import assets
 from flextrack.cli import main as flextrack_main
 from flextrack.formats import euroc
 from flextrack.formats.sequence import load
 from flextrack.geometry import se3, so3
-from flextrack.simulator.default_object import DEFAULT_DIR
 from flextrack.simulator.euroc_convert import convert_euroc, visibility
 from flextrack.simulator.integrate import integrate
 from flextrack.simulator.render import load_model
@@ -53,7 +53,7 @@ def test_frames_start_inside_the_still_start_with_backfilled_ground_truth(conver
 def test_scaled_object_is_written_and_small_objects_are_refused(converted, tmp_path):
     seq = load(converted)
     info = json.loads((converted / "models" / "models_info.json").read_text())
-    default_info = json.loads((DEFAULT_DIR / "models_info.json").read_text())
+    default_info = json.loads((assets.default_object_dir() / "models_info.json").read_text())
     assert next(iter(info.values()))["diameter"] == pytest.approx(4 * next(iter(default_info.values()))["diameter"],
                                                                      rel=1e-3)
     assert seq.meta["converter"]["object_scale"] == 4.0

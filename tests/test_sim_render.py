@@ -1,5 +1,6 @@
 """The default object is reproducible and asymmetric; rendered masks agree with the projected model."""
 
+import hashlib
 from pathlib import Path
 
 import cv2
@@ -7,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from flextrack import assets
 from flextrack.formats import bop
 from flextrack.geometry import se3, so3
 from flextrack.geometry.camera import PinholeCamera, project_model
@@ -15,7 +17,7 @@ from flextrack.simulator.render import Renderer, load_model
 from flextrack.simulator.scene import make_scene
 
 CAT = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo_cat" / "models" / "obj_000006.ply"
-DEFAULT_PLY = default_object.DEFAULT_DIR / "obj_000001.ply"
+DEFAULT_PLY = assets.default_object_model()  # generated on first use
 
 
 def reference_mask(camera: PinholeCamera, T_CO: np.ndarray, mesh, supersample: int = 8) -> np.ndarray:
@@ -38,9 +40,11 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
     return float((a & b).sum() / (a | b).sum())
 
 
-def test_default_object_regenerates_byte_identically(tmp_path):
+def test_default_object_is_the_one_the_shipped_network_was_trained_on(tmp_path):
     ply = default_object.write(tmp_path)
-    assert ply.read_bytes() == DEFAULT_PLY.read_bytes(), "run `python -m flextrack.simulator.default_object` and commit"
+    assert hashlib.sha256(ply.read_bytes()).hexdigest() == default_object.PLY_SHA256, \
+        "the generator changed the object: retrain the shipped model, or restore the object"
+    assert ply.read_bytes() == DEFAULT_PLY.read_bytes()
     assert (tmp_path / "models_info.json").read_text() == (DEFAULT_PLY.parent / "models_info.json").read_text()
 
 

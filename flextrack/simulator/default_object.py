@@ -5,7 +5,8 @@ rotation maps it onto itself, scaled to 150 mm across like the LineMOD cat, with
 pattern (a hue per part, a 3D checker, slanted stripes and dark spots) so that its pose is
 unambiguous from texture as well as from shape and a network can learn it. Faces wholly inside
 another part are dropped, so every vertex lies on the visible surface. Deterministic: the same
-code writes the same bytes (a test regenerates it).
+code writes the same bytes, PLY_SHA256, the ones the shipped network was trained on (a test
+checks). `flextrack.assets` generates it on first use; no copy is tracked.
 
 Written as a BOP model: `models/obj_000001.ply` (mm, flat per-face normals, RGBA per vertex) and
 `models/models_info.json` (diameter, bounding box).
@@ -31,7 +32,9 @@ OBJECT_ID = "default"
 BOP_OBJ_ID = 1
 DIAMETER_MM = 150.0
 MAX_EDGE_MM = 5.0  # vertex spacing: dense enough that vertex colours read as texture
-DEFAULT_DIR = assets.default_object_dir()  # where `write` puts the models folder by default
+DEFAULT_DIR = assets.default_object_home()  # where `write` puts the models folder by default
+# sha256 of the .ply `write` produces: the object the shipped PVNet model was trained on
+PLY_SHA256 = "d3d419e53f6ae5fb135af60b06dc9c5021e7c4d87aa353bb6f71e662ad17c06f"
 _EPS = 1e-3  # mm: a vertex on a part's boundary is not inside it
 
 
