@@ -410,6 +410,18 @@ def render_bench_region(folder: Path) -> str:
         provenance_line(data["provenance"]) + f" Files: `{RESULTS_DIR.as_posix()}/{folder.name}/`."])
 
 
+@section("nees")
+def render_nees(folder: Path) -> str:
+    """`flextrack evaluate nees`: each estimator's held-out mean NEES against chi2(6)'s interval."""
+    from flextrack.evaluation.nees_calibration import table
+
+    data = json.loads((folder / "nees.json").read_text())
+    max_px = data["provenance"]["options"]["max_2d_px"]
+    return "\n".join([table(data["estimators"], max_px), "",
+                      provenance_line(data["provenance"]) + f" Files: `{RESULTS_DIR.as_posix()}/{folder.name}/` "
+                      "(`answers.csv`: every held-out answer's NEES, 2D error and error)."])
+
+
 # --- the command -----------------------------------------------------------------------------------
 
 

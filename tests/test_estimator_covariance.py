@@ -66,6 +66,30 @@ def test_pnp_covariance_is_calibrated_on_noisy_keypoints():
     assert 4.3 < s["median"] < 5.5 and 0.04 < s["share_above_q95"] < 0.12, s
 
 
+def test_the_nees_command_stores_its_summaries_answers_and_provenance_and_the_report_renders_them(tmp_path):
+    import csv
+    import json
+
+    from flextrack.cli import main as flextrack_main
+    from flextrack.report import render_nees
+
+    out = tmp_path / "nees"
+    flextrack_main(["evaluate", "nees", "--estimators", "pnp", "--pnp-answers", "40", "--pnp-tune-answers", "40",
+                    "--out", str(out)])
+    data = json.loads((out / "nees.json").read_text())
+    assert data["provenance"]["options"]["pnp_answers"] == 40 and data["provenance"]["wall_s"] > 0
+    assert data["provenance"]["options"]["command"] == "flextrack evaluate nees"
+    (entry,) = data["estimators"]
+    with open(out / "answers.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == entry["heldout_all"]["n"] >= 38 and {r["estimator"] for r in rows} == {"pnp"}
+    mean_nees = np.mean([float(r["nees"]) for r in rows])
+    assert mean_nees == pytest.approx(entry["heldout_all"]["mean"], rel=1e-5)
+    assert len(entry["heldout_below_max_2d"]["mean_error_deg_mm"]) == 6
+    text = render_nees(out)
+    assert "| pnp | all | " in text and "Source: `flextrack evaluate nees" in text
+
+
 def test_pnp_exact_keypoints_keep_the_floor_and_noisier_ones_widen_it():
     from estimators.objects import ObjectRegistry
     from estimators.pnp import PnpEstimator

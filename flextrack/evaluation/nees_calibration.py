@@ -47,6 +47,16 @@ def summarise(values) -> dict:
             "share_above_q95": float(np.mean(v > CHI2_6_Q95)), "passed": bool(lo <= mean <= hi)}
 
 
+def answer_row(frame: int, T_est: np.ndarray, T_true: np.ndarray, covariance: np.ndarray, camera, vertices) -> dict:
+    """One answer scored: its NEES, mean 2D error (px) and error e (wire convention; deg, deg, deg, mm, mm, mm)."""
+    from flextrack import wire
+    from flextrack.geometry import metrics
+
+    e = wire.pose_error(T_est, T_true)
+    return {"frame": frame, "nees": nees(e, covariance), "proj_px": metrics.proj_px(T_est, T_true, camera, vertices),
+            "error": [*np.degrees(e[:3]).tolist(), *(1e3 * e[3:]).tolist()]}
+
+
 def inflation_factor(values) -> float:
     """The one factor k by which covariances are scaled (Sigma -> k Sigma) to bring the mean NEES of
     these answers to 6, its expectation."""
@@ -70,8 +80,7 @@ def pnp_answers(n: int, seed: int, noise_px: float = 1.0, outlier_share: float =
     from estimators.base import EstimateInput, Status
     from estimators.objects import ObjectRegistry
     from estimators.pnp import PnpEstimator
-    from flextrack import wire
-    from flextrack.geometry import metrics, se3
+    from flextrack.geometry import se3
     from flextrack.geometry.camera import PinholeCamera
     from flextrack.training.pvnet_data import random_pose
 
@@ -93,10 +102,7 @@ def pnp_answers(n: int, seed: int, noise_px: float = 1.0, outlier_share: float =
         out = estimator.estimate(EstimateInput(frame_id=i, capture_time_ns=0, camera=camera, keypoints=kp))
         if out.status is not Status.OK:
             continue
-        rows.append({"frame": i, "nees": nees(wire.pose_error(out.T_CO, T), out.covariance),
-                     "proj_px": metrics.proj_px(out.T_CO, T, camera, obj.vertices),
-                     "std_deg": np.degrees(np.sqrt(np.diag(out.covariance)[:3])).tolist(),
-                     "std_mm": (1e3 * np.sqrt(np.diag(out.covariance)[3:])).tolist()})
+        rows.append(answer_row(i, out.T_CO, T, out.covariance, camera, obj.vertices))
     return rows
 
 
@@ -107,9 +113,7 @@ def gt_oracle_answers(sequence_root: Path, noise_t_m: float, noise_r_deg: float,
     from estimators.base import EstimateInput, Status
     from estimators.gt_oracle import GtOracleEstimator
     from estimators.objects import load_object
-    from flextrack import wire
     from flextrack.formats import sequence as sequence_io
-    from flextrack.geometry import metrics
 
     seq = sequence_io.load(sequence_root)
     oracle = GtOracleEstimator(sequence_roots=[sequence_root], noise_t_m=noise_t_m, noise_r_deg=noise_r_deg,
@@ -124,9 +128,7 @@ def gt_oracle_answers(sequence_root: Path, noise_t_m: float, noise_r_deg: float,
         out = oracle.estimate(EstimateInput(frame_id=frame_id, capture_time_ns=times[frame_id]))
         if out.status is not Status.OK:
             continue
-        T = seq.gt_T_CO[frame_id]
-        rows.append({"frame": frame_id, "nees": nees(wire.pose_error(out.T_CO, T), out.covariance),
-                     "proj_px": metrics.proj_px(out.T_CO, T, seq.camera, vertices)})
+        rows.append(answer_row(frame_id, out.T_CO, seq.gt_T_CO[frame_id], out.covariance, seq.camera, vertices))
     return rows
 
 
@@ -137,7 +139,6 @@ def pvnet_answers(n: int, seed: int, jpeg: int | None, estimators: dict, obj, ob
     `flextrack train pvnet-eval` (the simulator's rooms, seed `seed`), sent through JPEG at quality
     `jpeg` as the device sends them (None: as rendered); `obj` the ObjectModel of `object_path`."""
     from estimators.base import EstimateInput, Status
-    from flextrack import wire
     from flextrack.geometry import metrics
     from flextrack.training import evaluate
 
@@ -150,8 +151,7 @@ def pvnet_answers(n: int, seed: int, jpeg: int | None, estimators: dict, obj, ob
             out = estimator.estimate(EstimateInput(frame_id=i, capture_time_ns=0, camera=camera, image=rgb))
             if out.status is not Status.OK:
                 continue
-            rows[name].append({"frame": i, "nees": nees(wire.pose_error(out.T_CO, T), out.covariance),
-                               "proj_px": metrics.proj_px(out.T_CO, T, camera, obj.vertices),
+            rows[name].append({**answer_row(i, out.T_CO, T, out.covariance, camera, obj.vertices),
                                "add_ok": bool(metrics.add_m(out.T_CO, T, obj.vertices) < 0.1 * obj.diameter_m)})
         if progress is not None:
             progress(i + 1)
@@ -164,7 +164,8 @@ ESTIMATORS = ("gt_oracle", "pnp", "pvnet")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", type=Path, default=Path("out/nees"), help="folder for nees.json")
+    parser.add_argument("--out", type=Path, default=Path("out/nees"),
+                        help="folder for nees.json (summaries, provenance) and answers.csv (every held-out answer)")
     parser.add_argument("--estimators", nargs="+", choices=ESTIMATORS, default=list(ESTIMATORS))
     parser.add_argument("--max-2d-px", type=float, default=20.0,
                         help="the criterion's answers: those with a mean 2D error below this (gross outliers out)")
@@ -191,24 +192,48 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _entry(name: str, tune: list[dict], held: list[dict], stored: float, max_px: float, **extra) -> dict:
-    """Held-out summaries (all answers and those under max_px) and the factor the tuning set asks for:
-    the raw formula's mean NEES / 6 there (the NEES with the stored factor times that factor)."""
+    """Held-out summaries (all answers and those under max_px, with their mean error: a bias no
+    covariance of zero mean describes) and the factor the tuning set asks for: the raw formula's mean
+    NEES / 6 there (the NEES with the stored factor times that factor)."""
     good = lambda rows: [r for r in rows if r["proj_px"] < max_px]
     fitted = inflation_factor([r["nees"] * stored for r in good(tune)]) if tune else None
+    mean_error = np.mean([r["error"] for r in good(held)], axis=0).tolist() if good(held) else None
     return {"estimator": name, "stored_inflation": stored, "fitted_inflation": fitted,
             "tuning_answers": len(good(tune)), "heldout_all": summarise(r["nees"] for r in held),
-            "heldout_below_max_2d": summarise(r["nees"] for r in good(held)), **extra, "answers": held}
+            "heldout_below_max_2d": {**summarise(r["nees"] for r in good(held)), "mean_error_deg_mm": mean_error},
+            **extra, "answers": held}
+
+
+ANSWER_COLUMNS = ("estimator", "frame", "nees", "proj_px", "rx_deg", "ry_deg", "rz_deg", "tx_mm", "ty_mm", "tz_mm")
+
+
+def write_results(result: dict, out: Path) -> Path:
+    """`nees.json` (the summaries and the provenance) and `answers.csv` (every held-out answer: its NEES,
+    2D error and error e in the camera frame) into `out`; returns the JSON's path."""
+    import csv
+    import json
+
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "answers.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(ANSWER_COLUMNS)
+        for e in result["estimators"]:
+            for r in e["answers"]:
+                writer.writerow([e["estimator"], r["frame"], f"{r['nees']:.6g}", f"{r['proj_px']:.6g}",
+                                 *(f"{v:.6g}" for v in r["error"])])
+    summaries = {**result, "estimators": [{k: v for k, v in e.items() if k != "answers"} for e in result["estimators"]]}
+    path = out / "nees.json"
+    path.write_text(json.dumps(summaries, indent=1))
+    return path
 
 
 def run(args) -> int:
-    import json
     import sys
     import time
 
     started = time.perf_counter()
-    result = {"command": "flextrack evaluate nees " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else
-              "flextrack evaluate nees",
-              **provenance(**{k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}), "estimators": []}
+    options = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items() if not k.startswith("_")}
+    result = {"provenance": provenance(command="flextrack evaluate nees", **options), "estimators": []}
     entries = result["estimators"]
     try:
         if "gt_oracle" in args.estimators:
@@ -220,12 +245,12 @@ def run(args) -> int:
     except (FileNotFoundError, ValueError) as exc:
         print(f"flextrack evaluate nees: {exc}", file=sys.stderr)
         return 2
-    result["seconds"] = round(time.perf_counter() - started, 1)
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / "nees.json"
-    path.write_text(json.dumps(result, indent=1))
+    prov = result["provenance"]
+    prov["wall_s"] = round(time.perf_counter() - started, 1)
+    path = write_results(result, args.out)
     print(table(entries, args.max_2d_px))
-    print(f"wrote {path} ({result['seconds']:.0f} s; commit {result['commit'] or '?'}{' dirty' if result['dirty'] else ''})")
+    print(f"wrote {path} and answers.csv ({prov['wall_s']:.0f} s; commit {prov['commit'] or '?'}"
+          f"{' dirty' if prov['dirty'] else ''})")
     return 0 if all(e["heldout_below_max_2d"]["passed"] for e in entries) else 1
 
 
@@ -291,17 +316,21 @@ def _pvnet(args) -> list[dict]:
 
 
 def table(entries: list[dict], max_px: float) -> str:
-    """The held-out figures as a Markdown table."""
-    lines = ["| estimator | answers | N | mean NEES | 95 % interval | median | share > 12.59 | pass | inflation (fitted) |",
-             "|---|---|---:|---:|---|---:|---:|---|---|"]
+    """The held-out figures as a Markdown table; the mean error (a bias) on the criterion's answers."""
+    lines = [("| estimator | answers | N | mean NEES | 95 % interval | median | share > 12.59 | pass | inflation (fitted) "
+              "| mean error: rotation deg (x, y, z); translation mm (x, y, z) |"),
+             "|---|---|---:|---:|---|---:|---:|---|---|---|"]
     for e in entries:
         for label, key in (("all", "heldout_all"), (f"2D < {max_px:g} px", "heldout_below_max_2d")):
             s = e[key]
             if not s["n"]:
-                lines.append(f"| {e['estimator']} | {label} | 0 | - | - | - | - | - | |")
+                lines.append(f"| {e['estimator']} | {label} | 0 | - | - | - | - | - | | |")
                 continue
             fitted = "-" if e["fitted_inflation"] is None else f"{e['fitted_inflation']:.3g}"
+            bias = s.get("mean_error_deg_mm")
+            bias = "" if bias is None else (", ".join(f"{v:+.2f}" for v in bias[:3]) + "; "
+                                            + ", ".join(f"{v:+.1f}" for v in bias[3:]))
             lines.append(f"| {e['estimator']} | {label} | {s['n']} | {s['mean']:.2f} | [{s['interval'][0]:.2f}, "
                          f"{s['interval'][1]:.2f}] | {s['median']:.2f} | {100 * s['share_above_q95']:.1f} % | "
-                         f"{'yes' if s['passed'] else 'NO'} | {e['stored_inflation']:g} ({fitted}) |")
+                         f"{'yes' if s['passed'] else 'NO'} | {e['stored_inflation']:g} ({fitted}) | {bias} |")
     return "\n".join(lines)
