@@ -31,7 +31,8 @@ def test_image_is_slim_non_root_and_health_checked():
     text = DOCKERFILE.read_text()
     assert re.search(r"^ARG BASE_IMAGE=python:3\.\d+-slim$", text, re.MULTILINE)
     assert re.search(r"^FROM \$\{BASE_IMAGE\}$", text, re.MULTILINE)
-    assert re.search(r"^RUN python3 -m pip wheel .* \.$", text, re.MULTILINE)  # a wheel built from the tree
+    assert re.search(r"^(RUN| &&) python3 -m pip wheel .* \.$", text, re.MULTILINE)  # a wheel built from the tree,
+    assert text.index("-m flextrack.simulator.default_object") < text.index("pip wheel")  # the default object in it
     install = re.search(r"pip install [^\n]*\.whl\)?\[(\w+)\]", text)
     assert install and install.group(1) == "server"  # the backend extra: no torch, no simulator
     assert " -e " not in text and "COPY . /app" not in text  # the wheel, not an editable install of a source tree
