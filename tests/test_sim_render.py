@@ -48,6 +48,18 @@ def test_default_object_is_the_one_the_shipped_network_was_trained_on(tmp_path):
     assert (tmp_path / "models_info.json").read_text() == (DEFAULT_PLY.parent / "models_info.json").read_text()
 
 
+def test_the_default_object_is_generated_on_first_use_whole_and_once(tmp_path, monkeypatch):
+    home = tmp_path / "objects" / "default" / "models"
+    monkeypatch.setattr(assets, "default_object_home", lambda: home)
+    path = assets.resolve("objects/default/models/obj_000001.ply", tmp_path)  # a config's path into its folder
+    assert path == home / "obj_000001.ply"
+    assert hashlib.sha256(path.read_bytes()).hexdigest() == default_object.PLY_SHA256
+    assert (home / "models_info.json").is_file()
+    assert [p.name for p in home.parent.iterdir()] == ["models"]  # the staging folder is gone
+    written = path.stat().st_mtime_ns
+    assert assets.default_object_model() == path and path.stat().st_mtime_ns == written  # not generated again
+
+
 def test_default_object_size_colours_and_no_symmetry():
     info = bop.read_models_info(DEFAULT_PLY.parent / "models_info.json")[default_object.BOP_OBJ_ID]
     assert abs(info["diameter"] - 150.0) < 0.5
