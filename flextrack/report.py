@@ -199,7 +199,7 @@ def render_filter(folder: Path) -> str:
                     "--moving-start`) and an IMU stamping 20 ms late (`simulate --imu-time-offset 0.02`):"), "",
         "| start | 2D px | 2D px from 1 s after the first pose | first pose to FINE, s | estimated offset, ms |",
         "|---|---|---|---|---|", *starts, "",
-        provenance_line(prov, "flextrack experiment filter --seeds 3 --out out/filter") + f" Files: "
+        provenance_line(prov, f"flextrack experiment filter --seeds {len(seeds)} --out out/filter") + f" Files: "
         f"`{RESULTS_DIR.as_posix()}/{folder.name}/`."])
 
 
