@@ -241,7 +241,6 @@ def render_bound(folder: Path) -> str:
                      f"{m[1] / m[3]:.2f} |")
     a = np.array(means)
     runs = np.array([[_num(r[c]) for c in columns] for r in rows])
-
     return "\n".join([
         (f"The Noisy cells of Table 2 (seeds {', '.join(map(str, seeds))}, means over seeds), mean 2D error in px over the frames from "
          f"{SETTLE_S:g} s after the first (the first column: all frames, Table 2's figure). *measured*: the filter; "

@@ -67,9 +67,9 @@ def inflation_factor(values) -> float:
 
 def _default_object():
     from estimators.objects import load_object
-    from flextrack.training.cli import DEFAULT_OBJECT
+    from flextrack import assets
 
-    return load_object("default", DEFAULT_OBJECT)
+    return load_object("default", assets.default_object_model())
 
 
 def pnp_answers(n: int, seed: int, noise_px: float = 1.0, outlier_share: float = 0.3, estimator=None,
@@ -195,12 +195,13 @@ def _entry(name: str, tune: list[dict], held: list[dict], stored: float, max_px:
     """Held-out summaries (all answers and those under max_px, with their mean error: a bias no
     covariance of zero mean describes) and the factor the tuning set asks for: the raw formula's mean
     NEES / 6 there (the NEES with the stored factor times that factor)."""
-    good = lambda rows: [r for r in rows if r["proj_px"] < max_px]
-    fitted = inflation_factor([r["nees"] * stored for r in good(tune)]) if tune else None
-    mean_error = np.mean([r["error"] for r in good(held)], axis=0).tolist() if good(held) else None
+    good_tune = [r for r in tune if r["proj_px"] < max_px]
+    good_held = [r for r in held if r["proj_px"] < max_px]
+    fitted = inflation_factor([r["nees"] * stored for r in good_tune]) if tune else None
+    mean_error = np.mean([r["error"] for r in good_held], axis=0).tolist() if good_held else None
     return {"estimator": name, "stored_inflation": stored, "fitted_inflation": fitted,
-            "tuning_answers": len(good(tune)), "heldout_all": summarise(r["nees"] for r in held),
-            "heldout_below_max_2d": {**summarise(r["nees"] for r in good(held)), "mean_error_deg_mm": mean_error},
+            "tuning_answers": len(good_tune), "heldout_all": summarise(r["nees"] for r in held),
+            "heldout_below_max_2d": {**summarise(r["nees"] for r in good_held), "mean_error_deg_mm": mean_error},
             **extra, "answers": held}
 
 

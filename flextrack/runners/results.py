@@ -171,7 +171,7 @@ class TrackRecord:
             proj_px_max=float(proj.max()) if len(proj) else math.nan,
             jitter_px=float(np.sqrt(np.mean(jitter ** 2))) if len(jitter) else math.nan,
             nees_mean=mean(nees), nees_frames=len(nees),
-            nees_rotation_mean=mean([r.nees_rotation for r in scored if math.isfinite(r.nees_rotation)]),
+            nees_rotation_mean=mean([r.nees_rotation for r in with_nees]),
             nees_lo=interval.lo, nees_hi=interval.hi, nees_interval_from=source if len(nees) else "", fine_frames=counts.get("FINE", 0),
             worst_fine_px=max(fine) if fine else math.nan, status_counts=counts,
             requests=self.requests, responses=self.responses, failures=self.failures,

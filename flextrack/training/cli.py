@@ -14,9 +14,6 @@ from pathlib import Path
 
 from flextrack import assets
 
-# The default object's model (its home is flextrack.assets; kept here for callers of this name).
-DEFAULT_OBJECT = assets.default_object_model()
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="task", required=True, metavar="TASK")
