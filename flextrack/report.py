@@ -167,7 +167,7 @@ def _cells(rows: list[dict[str, str]], columns: list[tuple[str, str, str]]) -> l
 @section("filter")
 def render_filter(folder: Path) -> str:
     """The filter's peer cells, moving start and time offset (flextrack experiment filter)."""
-    from flextrack.experiments.filter_checks import GOALS, PEER
+    from flextrack.experiments.filter_checks import GOALS, PEER, WINDOW_NAMES
 
     rows = read_csv(folder / "filter.csv")
     prov = read_provenance(folder / "filter.json")
@@ -183,12 +183,15 @@ def render_filter(folder: Path) -> str:
             peer.append(f"| {cell[0]} {cell[1]} | {fusion} | {mean(sel, 'proj_px'):.2f} | {mean(sel, 'pos_mm'):.2f} | "
                         f"{mean(sel, 'ori_deg'):.3f} | {mean(sel, 'jitter_px'):.2f} | {mean(sel, 'nees_mean'):.2f} | "
                         f"{mean(sel, 'worst_fine_px'):.2f} |")
-    starts = []
+    starts, windows = [], []
     for check in ("still_start", "moving_start", "time_offset_20ms"):
         sel = [r for r in rows if r["check"] == check]
         if sel:
             starts.append(f"| {check.replace('_', ' ')} | {mean(sel, 'proj_px'):.2f} | {mean(sel, 'proj_px_after_1s'):.2f} | "
                           f"{mean(sel, 'fine_after_s'):.2f} | {mean(sel, 'time_offset_ms'):.2f} |")
+            windows.append(f"| {check.replace('_', ' ')} | "
+                           + " | ".join(f"{mean(sel, f'proj_px_{w}'):.2f}" for w in WINDOW_NAMES) + " | "
+                           + " | ".join(f"{mean(sel, f'nees_{w}'):.1f}" for w in WINDOW_NAMES) + " |")
     return "\n".join([
         (f"Circular medium and translational hard at 60 FPS, the noisy oracle with its covariance behind a real gRPC "
          f"server, seeds {seeds}, every frame scored; means over seeds. The issue's public C++ error-state EKF (MaRS) on "
@@ -199,6 +202,10 @@ def render_filter(folder: Path) -> str:
                     "--moving-start`) and an IMU stamping 20 ms late (`simulate --imu-time-offset 0.02`):"), "",
         "| start | 2D px | 2D px from 1 s after the first pose | first pose to FINE, s | estimated offset, ms |",
         "|---|---|---|---|---|", *starts, "",
+        "The same by time after the first pose, 2D px and the filter's NEES (6 for a consistent filter):", "",
+        "| start | " + " | ".join(f"px {w.replace('_', ' ')}" for w in WINDOW_NAMES) + " | "
+        + " | ".join(f"NEES {w.replace('_', ' ')}" for w in WINDOW_NAMES) + " |",
+        "|---|" + "---|" * (2 * len(WINDOW_NAMES)), *windows, "",
         provenance_line(prov, f"flextrack experiment filter --seeds {len(seeds)} --out out/filter") + f" Files: "
         f"`{RESULTS_DIR.as_posix()}/{folder.name}/`."])
 

@@ -123,6 +123,9 @@ def test_filter_checks_write_the_peer_cells_with_provenance(tmp_path, capsys):
     filt = [float(r["proj_px"]) for r in rows if r["check"] == "peer" and r["fusion"] == "filter"]
     paper = [float(r["proj_px"]) for r in rows if r["check"] == "peer" and r["fusion"] == "paper"]
     assert np.mean(filt) < np.mean(paper)  # even 4 s in, the filter is ahead of the paper's reset
+    still = next(r for r in rows if r["check"] == "still_start")  # its error and NEES by time after the first pose
+    assert np.isfinite(float(still["proj_px_0_1s"])) and np.isfinite(float(still["nees_1_3s"]))
+    assert np.isnan(float(still["proj_px_from_10s"]))  # a 4 s run has no frame 10 s after its first pose
     record = json.loads((out / "filter.json").read_text())["provenance"]
     assert record["options"]["seeds"] == [0] and record["date"] and "dirty" in record
     assert "Peer cells" in capsys.readouterr().out

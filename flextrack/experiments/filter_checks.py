@@ -7,7 +7,8 @@
    0.066 deg, jitter 0.27 px).
 2. A moving start: circular medium with the first frame 1 s after full speed (`simulate
    --moving-start`): seconds from the first answer to FINE, error after that second, beside the
-   still start's.
+   still start's; the 2D error and NEES by time after the first pose (`WINDOWS_S`) show how long the
+   filter takes to learn what a still start measures.
 3. A camera-IMU time offset: the IMU stamps its samples 20 ms late (`simulate --imu-time-offset
    0.02`): the estimated offset and the error beside the same sequence without offset.
 
@@ -35,8 +36,11 @@ PEER_CELLS = (("circular", "medium"), ("translational", "hard"))
 PEER = {"proj_px": 1.12, "pos_mm": 2.35, "ori_deg": 0.066, "jitter_px": 0.27}  # the MaRS figures
 GOALS = {"proj_px": 1.1, "ori_deg": 0.065, "jitter_px": 0.27}
 FPS = 60
+WINDOWS_S = ((0, 1), (1, 3), (3, 10), (10, None))  # seconds after the first pose (None: to the end)
+WINDOW_NAMES = [f"{a}_{b}s" if b is not None else f"from_{a}s" for a, b in WINDOWS_S]
 HEADER = ["check", "motion", "level", "seed", "fusion", "proj_px", "pos_mm", "ori_deg", "jitter_px", "nees_mean",
-          "worst_fine_px", "fine_after_s", "proj_px_after_1s", "time_offset_ms"]
+          "worst_fine_px", "fine_after_s", "proj_px_after_1s", "time_offset_ms",
+          *(f"proj_px_{w}" for w in WINDOW_NAMES), *(f"nees_{w}" for w in WINDOW_NAMES)]
 
 
 @dataclass
@@ -45,6 +49,8 @@ class Run:
     fine_after_s: float  # from the first pose to the first FINE frame
     proj_after_1s: float  # mean 2D error from 1 s after the first pose on
     time_offset_ms: float
+    proj_by_window: list[float]  # mean 2D error in each of WINDOWS_S
+    nees_by_window: list[float]  # mean NEES in each of WINDOWS_S
 
 
 def _sequence(cache: Path, motion: str, level: str, seed: int, duration_s: float, *, moving_start=False,
@@ -75,15 +81,25 @@ def _run(oracle: common.OracleBackend, seq, fusion: str, seed: int) -> Run:
     rows = record.rows
     first = next((r for r in rows if r.T_CO is not None), None)
     fine = next((r for r in rows if r.status == "FINE"), None)
-    after = [r.proj_px for r in record.scored() if first is not None and r.t_ns > first.t_ns + 1_000_000_000]
+    scored = record.scored()
+    after = [r.proj_px for r in scored if first is not None and r.t_ns > first.t_ns + 1_000_000_000]
+    windows = [[r for r in scored if first is not None and a <= (r.t_ns - first.t_ns) * 1e-9 < (b or np.inf)]
+               for a, b in WINDOWS_S]
     return Run(s, (fine.t_ns - first.t_ns) * 1e-9 if fine and first else float("nan"),
-               float(np.mean(after)) if after else float("nan"), getattr(box[0], "time_offset_s", 0.0) * 1e3)
+               float(np.mean(after)) if after else float("nan"), getattr(box[0], "time_offset_s", 0.0) * 1e3,
+               [_mean_of([r.proj_px for r in w]) for w in windows], [_mean_of([r.nees for r in w]) for w in windows])
+
+
+def _mean_of(values: list[float]) -> float:
+    finite = [v for v in values if np.isfinite(v)]
+    return float(np.mean(finite)) if finite else float("nan")
 
 
 def _row(check, motion, level, seed, fusion, run: Run) -> list:
     s = run.summary
     return [check, motion, level, seed, fusion, s.proj_px, s.pos_mm, s.ori_deg, s.jitter_px, s.nees_mean,
-            s.worst_fine_px, run.fine_after_s, run.proj_after_1s, run.time_offset_ms]
+            s.worst_fine_px, run.fine_after_s, run.proj_after_1s, run.time_offset_ms, *run.proj_by_window,
+            *run.nees_by_window]
 
 
 def run(out: Path, seeds: list[int], duration_s: float = 30.0, in_process: bool = False) -> list[list]:
@@ -148,4 +164,10 @@ def report(rows: list[list], seeds: list[int], duration_s: float, in_process: bo
              if (sel := [r for r in rows if r[0] == check])]
     lines.append(common.markdown_table(["start", "2D px", "2D px from 1 s after the first pose",
                                         "first pose to FINE, s", "estimated offset ms", "worst FINE px"], table))
+    lines += ["", "By time after the first pose (2D px, then NEES):", ""]
+    table = [[check, *(_mean(sel, f"proj_px_{w}") for w in WINDOW_NAMES), *(_mean(sel, f"nees_{w}") for w in WINDOW_NAMES)]
+             for check in ("still_start", "moving_start", "time_offset_20ms")
+             if (sel := [r for r in rows if r[0] == check])]
+    lines.append(common.markdown_table(["start", *(f"px {w}" for w in WINDOW_NAMES),
+                                        *(f"NEES {w}" for w in WINDOW_NAMES)], table))
     return "\n".join(lines) + "\n"
