@@ -167,7 +167,7 @@ def _cells(rows: list[dict[str, str]], columns: list[tuple[str, str, str]]) -> l
 @section("filter")
 def render_filter(folder: Path) -> str:
     """The filter's peer cells, moving start and time offset (flextrack experiment filter)."""
-    from flextrack.experiments.filter_checks import GOALS, PEER, WINDOW_NAMES
+    from flextrack.experiments.filter_checks import GOALS, PEER, WINDOW_LABELS, WINDOW_NAMES
 
     rows = read_csv(folder / "filter.csv")
     prov = read_provenance(folder / "filter.json")
@@ -203,8 +203,7 @@ def render_filter(folder: Path) -> str:
         "| start | 2D px | 2D px from 1 s after the first pose | first pose to FINE, s | estimated offset, ms |",
         "|---|---|---|---|---|", *starts, "",
         "The same by time after the first pose, 2D px and the filter's NEES (6 for a consistent filter):", "",
-        "| start | " + " | ".join(f"px {w.replace('_', ' ')}" for w in WINDOW_NAMES) + " | "
-        + " | ".join(f"NEES {w.replace('_', ' ')}" for w in WINDOW_NAMES) + " |",
+        "| start | " + " | ".join(f"px {w}" for w in WINDOW_LABELS) + " | " + " | ".join(f"NEES {w}" for w in WINDOW_LABELS) + " |",
         "|---|" + "---|" * (2 * len(WINDOW_NAMES)), *windows, "",
         provenance_line(prov, f"flextrack experiment filter --seeds {len(seeds)} --out out/filter") + f" Files: "
         f"`{RESULTS_DIR.as_posix()}/{folder.name}/`."])

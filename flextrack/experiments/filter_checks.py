@@ -37,7 +37,8 @@ PEER = {"proj_px": 1.12, "pos_mm": 2.35, "ori_deg": 0.066, "jitter_px": 0.27}  #
 GOALS = {"proj_px": 1.1, "ori_deg": 0.065, "jitter_px": 0.27}
 FPS = 60
 WINDOWS_S = ((0, 1), (1, 3), (3, 10), (10, None))  # seconds after the first pose (None: to the end)
-WINDOW_NAMES = [f"{a}_{b}s" if b is not None else f"from_{a}s" for a, b in WINDOWS_S]
+WINDOW_NAMES = [f"{a}_{b}s" if b is not None else f"from_{a}s" for a, b in WINDOWS_S]  # in the CSV's columns
+WINDOW_LABELS = [f"{a}-{b} s" if b is not None else f"from {a} s" for a, b in WINDOWS_S]  # in the tables
 HEADER = ["check", "motion", "level", "seed", "fusion", "proj_px", "pos_mm", "ori_deg", "jitter_px", "nees_mean",
           "worst_fine_px", "fine_after_s", "proj_px_after_1s", "time_offset_ms",
           *(f"proj_px_{w}" for w in WINDOW_NAMES), *(f"nees_{w}" for w in WINDOW_NAMES)]
@@ -168,6 +169,6 @@ def report(rows: list[list], seeds: list[int], duration_s: float, in_process: bo
     table = [[check, *(_mean(sel, f"proj_px_{w}") for w in WINDOW_NAMES), *(_mean(sel, f"nees_{w}") for w in WINDOW_NAMES)]
              for check in ("still_start", "moving_start", "time_offset_20ms")
              if (sel := [r for r in rows if r[0] == check])]
-    lines.append(common.markdown_table(["start", *(f"px {w}" for w in WINDOW_NAMES),
-                                        *(f"NEES {w}" for w in WINDOW_NAMES)], table))
+    lines.append(common.markdown_table(["start", *(f"px {w}" for w in WINDOW_LABELS),
+                                        *(f"NEES {w}" for w in WINDOW_LABELS)], table))
     return "\n".join(lines) + "\n"
