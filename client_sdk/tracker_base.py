@@ -38,9 +38,9 @@ def as_int(value, name: str, what: str = "an integer number of nanoseconds") -> 
 def imu_sample(t_ns, gyro, accel, last_t_ns: int | None) -> tuple:
     """The sample `(t_ns, w 3, a 3)` as floats; ValueError for non-finite values or a time not after the last."""
     t = as_int(t_ns, "t_ns")
-    try:
-        gx, gy, gz = (float(v) for v in gyro)
-        ax, ay, az = (float(v) for v in accel)
+    try:  # numpy rows (what the runners pass) become floats in one call, not one scalar at a time
+        gx, gy, gz = map(float, gyro.tolist() if isinstance(gyro, np.ndarray) else gyro)
+        ax, ay, az = map(float, accel.tolist() if isinstance(accel, np.ndarray) else accel)
     except (TypeError, ValueError):
         raise ValueError("gyro and accel must each be 3 numbers") from None
     if not isfinite(gx + gy + gz + ax + ay + az):

@@ -427,6 +427,25 @@ def render_nees(folder: Path) -> str:
                       "(`answers.csv`: every held-out answer's NEES, 2D error and error)."])
 
 
+@section("timing")
+def render_timing(folder: Path) -> str:
+    """`flextrack experiment timing`: per-call raw medians of both trackers, measured in one run."""
+    rows = read_csv(folder / "timing.csv")
+    paper = {r["operation"]: r for r in rows if r["tracker"] == "paper"}
+    header = ("| operation | filter, us | paper's tracker, us | filter / paper | filter x 2.46 | the paper (stretched), us "
+              "| filter's budget, us |")
+    lines = [header, "|---|---:|---:|---:|---:|---:|---:|"]
+    for r in (r for r in rows if r["tracker"] == "filter"):
+        med, base = _num(r["median_us"]), _num(paper[r["operation"]]["median_us"])
+        paper_us = f"{1e3 * _num(r['paper_ms']):.0f}" if r["paper_ms"] else "-"
+        budget = f"{_num(r['budget_us']):.0f}" + (" (met)" if med <= _num(r["budget_us"]) else " (**over**)") \
+            if r["budget_us"] else "-"
+        lines.append(f"| {r['operation']} | **{med:.1f}** | {base:.1f} | {med / base:.1f} | "
+                     f"{_num(r['stretched_median_us']):.0f} | {paper_us} | {budget} |")
+    prov = read_provenance(folder / "timing.json")
+    return "\n".join(lines + ["", provenance_line(prov) + f" Files: `{RESULTS_DIR.as_posix()}/{folder.name}/`."])
+
+
 # --- the command -----------------------------------------------------------------------------------
 
 

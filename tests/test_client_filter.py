@@ -189,3 +189,47 @@ def test_the_noise_estimate_is_what_the_midpoint_integrator_sees_vibration_near_
     g, a = vibrating.densities
     raw_accel = 0.5 * (2 - 2 * np.cos(2 * np.pi * 95 / 200)) / np.sqrt(2) / np.sqrt(6 * 200)  # second-difference reading
     assert a < 0.3 * raw_accel  # 0.19 of it
+
+
+def test_the_per_frame_algebra_on_floats_agrees_with_its_numpy_reference():
+    """`_T_CO`, `_eased` and `sigma_px` are written for speed (Python floats, columns): each against the
+    plain formula, at a random pose and covariance."""
+    from flextrack.geometry import so3
+
+    tracker = FilterTracker(TrackerOptions(), CAMERA, T_BC, BOX_O)
+    rng = np.random.default_rng(5)
+    R_OB = so3.exp(rng.normal(size=3))
+    p_OB = np.array([0.1, -0.2, -1.1])
+    x = tuple(R_OB.ravel().tolist()) + tuple(p_OB.tolist()) + (0.0, 0.0, 0.0)
+    T_OB = np.eye(4)
+    T_OB[:3, :3], T_OB[:3, 3] = R_OB, p_OB
+    T_CO = tracker._T_CO(x)
+    np.testing.assert_allclose(T_CO, np.linalg.inv(T_OB @ T_BC), atol=1e-12)
+
+    offset = rng.normal(size=6) * 0.01
+    eased = tracker._eased(T_CO, offset)
+    np.testing.assert_allclose(eased[:3, :3], so3.exp(-offset[:3]) @ T_CO[:3, :3], atol=1e-12)
+    np.testing.assert_allclose(eased[:3, 3], T_CO[:3, 3] - offset[3:], atol=1e-12)
+
+    A = rng.normal(size=(6, 6)) * 1e-3
+    cov = A @ A.T
+    T_CO[:3, 3] = [0.05, -0.03, 0.9]  # in front of the camera
+    corners = BOX_O @ T_CO[:3, :3].T + T_CO[:3, 3]
+    rows = []
+    for X, RX in zip(corners, BOX_O @ T_CO[:3, :3].T):
+        d_uv = np.array([[CAMERA.fx / X[2], 0, -CAMERA.fx * X[0] / X[2] ** 2],
+                         [0, CAMERA.fy / X[2], -CAMERA.fy * X[1] / X[2] ** 2]])
+        rows.append(d_uv @ np.hstack([-so3.skew(RX), np.eye(3)]))
+    J = np.vstack(rows)
+    expected = np.sqrt(np.trace(J @ cov @ J.T) / len(BOX_O))  # RMS over corners of the 2D 1-sigma radius
+    assert tracker.sigma_px(T_CO, cov) == pytest.approx(expected, rel=1e-12)
+
+
+def test_imu_rows_as_numpy_arrays_are_taken_and_bad_shapes_refused():
+    tracker = FilterTracker(TrackerOptions(), CAMERA, T_BC, BOX_O)
+    tracker.add_imu(1_000_000, np.array([0.1, 0.2, 0.3]), np.array([0.0, 0.0, 9.81]))
+    tracker.add_imu(6_000_000, [0.1, 0.2, 0.3], (0.0, 0.0, 9.81))
+    for gyro in (np.zeros((3, 1)), np.zeros(4), np.array([0.0, np.nan, 0.0])):
+        with pytest.raises(ValueError):
+            tracker.add_imu(11_000_000, gyro, np.array([0.0, 0.0, 9.81]))
+    assert tracker.now_ns == 6_000_000  # the refused samples changed nothing

@@ -56,10 +56,19 @@ def test_timing_writes_the_agreed_csv(tmp_path):
     out = tmp_path / "timing"
     assert main(["experiment", "timing", "--out", str(out), "--duration", "3"]) == 0
     rows = _csv(out / "timing.csv")
-    assert list(rows[0]) == ["operation", "median_us", "p99_us", "stretched_median_us", "paper_ms"]
-    assert [r["operation"] for r in rows] == ["pim", "prm", "ppm"]
+    assert list(rows[0]) == ["tracker", "operation", "median_us", "p99_us", "stretched_median_us", "paper_ms",
+                             "budget_us", "calls"]
+    assert [(r["tracker"], r["operation"]) for r in rows] == [(t, op) for t in ("filter", "paper")
+                                                              for op in ("pim", "prm", "ppm")]
     for r in rows:
         assert float(r["stretched_median_us"]) > float(r["median_us"]) > 0
+    calls = {(r["tracker"], r["operation"]): int(r["calls"]) for r in rows}
+    assert calls["filter", "ppm"] == calls["paper", "ppm"] > 0  # the same replay for both
+    assert [float(r["budget_us"] or 0) for r in rows if r["tracker"] == "filter"] == [0, 400, 20]
+    # the stored result renders (the figures themselves are the machine's: a benchmark, not asserted)
+    from flextrack import report
+
+    assert "filter's budget" in report.RENDERERS["timing"](out)
 
 
 def test_bad_arguments_are_refused(tmp_path, capsys):

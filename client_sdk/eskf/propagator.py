@@ -7,8 +7,8 @@ Continuous-time error dynamics, with w = w_m - b_g and a = a_m - b_a (body frame
     d_bg'    = n_wg        d_ba' = n_wa         d_g' = 0       d_td' = 0
 
 discretised to first order, Phi = I + A dt, Q = diag(sigma^2 dt) with Kalibr's densities. The 36
-non-trivial entries of Phi are written with one indexed assignment: the whole step costs a few microseconds,
-two 19x19 products included.
+non-trivial entries of Phi are kept in one array and only those that changed are written (an indexed
+assignment each): the whole step costs a few microseconds, two 19x19 products included.
 """
 
 from __future__ import annotations
@@ -26,13 +26,16 @@ def _flat(pairs) -> list[int]:
     return [r * N + c for r, c in pairs]
 
 
-_PHI_INDEX = np.array(
-    _flat((r, c) for r in range(3) for c in range(3))  # theta-theta
-    + _flat((k, 9 + k) for k in range(3))  # theta-bg
-    + _flat((3 + k, 6 + k) for k in range(3))  # p-v
+# Phi = I + A dt has 36 non-trivial entries. 24 change with every sample (the rotation's off-diagonal,
+# -R [a]x dt and -R dt); the 9 of +-dt only when the interval does; the diagonal stays 1.
+_PHI_SAMPLE = np.array(
+    _flat((r, c) for r in range(3) for c in range(3) if r != c)  # theta-theta
     + _flat((6 + r, c) for r in range(3) for c in range(3))  # v-theta
-    + _flat((6 + r, 12 + c) for r in range(3) for c in range(3))  # v-ba
-    + _flat((6 + k, 15 + k) for k in range(3)))  # v-g
+    + _flat((6 + r, 12 + c) for r in range(3) for c in range(3)))  # v-ba
+_PHI_DT = np.array(
+    _flat((k, 9 + k) for k in range(3))  # theta-bg: -dt
+    + _flat((3 + k, 6 + k) for k in range(3))  # p-v: dt
+    + _flat((6 + k, 15 + k) for k in range(3)))  # v-g: dt
 _Q_EVERY = 20  # samples between updates of Q from the in-use noise estimate
 # The estimate scatters by a few % over its window; taking max(yaml, estimate) as it is would bias the
 # densities up (a simulated Pixel 2's GT NEES 5.8 for 6). Only an IMU showing clearly more than its yaml
@@ -50,11 +53,14 @@ class CovariancePropagator:
         self._densities = (k * options.gyroscope_noise_density, k * options.accelerometer_noise_density)
         self._walks = (k * options.gyroscope_random_walk, k * options.accelerometer_random_walk)
         self._adapt = options.adapt_imu_noise
-        self._alpha = 1.0 / max(options.noise_window_samples, 1)
-        self._n2 = [0.0, 0.0]  # running estimate of the squared white-noise density, gyro and accel
-        self._last: tuple = (None, None, None)  # the three samples before the next
-        self._seen = 0
+        alpha = 1.0 / max(options.noise_window_samples, 1)
+        # n2 <- (1 - alpha) n2 + alpha seen, _Q_EVERY times: the old n2's factor and each new value's
+        self._decay = (1.0 - alpha) ** _Q_EVERY
+        self._weights = alpha * (1.0 - alpha) ** np.arange(_Q_EVERY - 1, -1, -1)
+        self._n2 = np.zeros(2)  # running estimate of the squared white-noise density, gyro and accel
+        self._pending: list[tuple] = []  # the samples not yet in it, and the three before them
         self._phi = _IDENTITY.copy()
+        self._phi_dt = 0.0  # the interval the +-dt entries of _phi hold
         self._set_q(*self._densities)
 
     def _set_q(self, gyro_density: float, accel_density: float) -> None:
@@ -69,24 +75,25 @@ class CovariancePropagator:
         n^2 r in mean square per axis, smooth motion adds next to nothing to it (a simulated Pixel 2
         reads its yaml), and vibration near the Nyquist rate, which the means cancel, adds little
         (EuRoC's rotors; the CHANGELOG has what it did to that experiment). A vibrating device still
-        shows far more than its datasheet's n, and the filter must believe it."""
+        shows far more than its datasheet's n, and the filter must believe it.
+
+        The running mean (one exponential average per sample) is only read when Q is set, every
+        _Q_EVERY samples, so it is brought up to date then, for all of them at once."""
         if not self._adapt:
             return
-        s0, s1, s2 = self._last
-        self._last = (s1, s2, sample)
-        if s0 is None:
+        pending = self._pending
+        pending.append(sample)
+        if len(pending) < _Q_EVERY + 3:
             return
-        dt = (sample[0] - s0[0]) * NS / 3.0
-        if dt <= 0:
-            return
-        a, n2 = self._alpha, self._n2
-        d = [sample[i] - s2[i] - s1[i] + s0[i] for i in range(1, 7)]  # twice the means' second difference
-        n2[0] += a * ((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) * dt / 12.0 - n2[0])  # -> n^2 (mean of 3 axes)
-        n2[1] += a * ((d[3] * d[3] + d[4] * d[4] + d[5] * d[5]) * dt / 12.0 - n2[1])
-        self._seen += 1
-        if self._seen % _Q_EVERY == 0:  # Q follows the estimate ten times a second, not every sample
-            self._set_q(*(seen if seen > _RAISE_ABOVE * base else base
-                          for seen, base in zip((n2[0] ** 0.5, n2[1] ** 0.5), self._densities)))
+        s = np.array(pending)
+        self._pending = pending[-3:]
+        dt = (s[3:, 0] - s[:-3, 0]) * (NS / 3.0)  # the mean interval over each second difference
+        d = s[3:, 1:] - s[2:-1, 1:] - s[1:-2, 1:] + s[:-3, 1:]  # twice the means' second differences
+        d2 = d * d
+        seen = np.stack([d2[:, 0:3].sum(axis=1), d2[:, 3:6].sum(axis=1)]) * (dt / 12.0)  # -> n^2 per sample
+        self._n2 = self._n2 * self._decay + seen @ self._weights  # the averages, sample by sample, at once
+        self._set_q(*(est if est > _RAISE_ABOVE * base else base
+                      for est, base in zip(np.sqrt(self._n2).tolist(), self._densities)))
 
     @property
     def densities(self) -> tuple[float, float]:
@@ -96,17 +103,19 @@ class CovariancePropagator:
     def transition(self, x: tuple, dt: float, w: tuple, a: tuple) -> np.ndarray:
         """Phi for an interval of dt seconds ending at nominal x, with bias-corrected rates w, a."""
         w0, w1, w2 = w[0] * dt, w[1] * dt, w[2] * dt
-        a0, a1, a2 = a
-        r = x[0:9]
-        m = []  # -R [a]x dt, row-major
-        for i in range(3):
-            ri0, ri1, ri2 = r[3 * i], r[3 * i + 1], r[3 * i + 2]
-            m += [-(ri1 * a2 - ri2 * a1) * dt, -(ri2 * a0 - ri0 * a2) * dt, -(ri0 * a1 - ri1 * a0) * dt]
-        values = ([1.0, w2, -w1, -w2, 1.0, w0, w1, -w0, 1.0, -dt, -dt, -dt, dt, dt, dt] + m
-                  + [-e * dt for e in r] + [dt, dt, dt])
-        phi = self._phi
-        phi.ravel()[_PHI_INDEX] = values  # a view: ~1 us less than np.put with a list
-        return phi
+        a0, a1, a2 = a[0] * dt, a[1] * dt, a[2] * dt
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = x[0:9]
+        flat = self._phi.ravel()  # a view
+        flat[_PHI_SAMPLE] = (
+            w2, -w1, -w2, w0, w1, -w0,  # I - [w dt]x, off the diagonal
+            r02 * a1 - r01 * a2, r00 * a2 - r02 * a0, r01 * a0 - r00 * a1,  # -R [a dt]x
+            r12 * a1 - r11 * a2, r10 * a2 - r12 * a0, r11 * a0 - r10 * a1,
+            r22 * a1 - r21 * a2, r20 * a2 - r22 * a0, r21 * a0 - r20 * a1,
+            -r00 * dt, -r01 * dt, -r02 * dt, -r10 * dt, -r11 * dt, -r12 * dt, -r20 * dt, -r21 * dt, -r22 * dt)
+        if dt != self._phi_dt:
+            flat[_PHI_DT] = (-dt, -dt, -dt, dt, dt, dt, dt, dt, dt)
+            self._phi_dt = dt
+        return self._phi
 
     @property
     def last_transition(self) -> np.ndarray:
@@ -121,8 +130,10 @@ class CovariancePropagator:
         w = (0.5 * (s0[1] + s1[1]) - c[0], 0.5 * (s0[2] + s1[2]) - c[1], 0.5 * (s0[3] + s1[3]) - c[2])
         a = (0.5 * (s0[4] + s1[4]) - c[3], 0.5 * (s0[5] + s1[5]) - c[4], 0.5 * (s0[6] + s1[6]) - c[5])
         phi = self.transition(x, dt, w, a)
-        out = phi @ cov @ phi.T
+        out = np.dot(np.dot(phi, cov), phi.T)  # np.dot: ~0.3 us less per 19x19 product than @
         if self._q_dt[0] != dt:
-            self._q_dt = (dt, self._q_density * dt)
-        out.ravel()[_Q_INDEX] += self._q_dt[1]
+            q = np.zeros((N, N))
+            q.ravel()[_Q_INDEX] = self._q_density * dt
+            self._q_dt = (dt, q)
+        out += self._q_dt[1]  # a dense add: cheaper than an indexed one
         return out

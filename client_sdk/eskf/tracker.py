@@ -41,7 +41,7 @@ from client_sdk.eskf.state import FilterState
 from client_sdk.imu_buffer import ImuBuffer
 from client_sdk.inspection import PoseInspector, Status
 from client_sdk.options import TrackerOptions
-from client_sdk.propagation import step_midpoint
+from client_sdk.propagation import rotate, step_midpoint
 from client_sdk.refinement import ResponseOutcome
 from client_sdk.state import TrackerState
 from client_sdk.tracker_base import FrameResult, TrackerBase, as_int, check_rigid, imu_sample
@@ -63,6 +63,7 @@ class FilterTracker(TrackerBase):
         T_BC = np.array(check_rigid(T_BC, "T_BC")).reshape(4, 4)
         self._R_CB = T_BC[:3, :3].T.copy()
         self._t_CB = -self._R_CB @ T_BC[:3, 3]
+        self._R_CB_floats, self._t_CB_floats = tuple(self._R_CB.ravel().tolist()), tuple(self._t_CB.tolist())
         self.camera = camera
         self.inspector = PoseInspector(camera, bbox_corners_O, o.area_divisor, o.px_error, o.px_motion,
                                        o.base_rate, o.near_m)
@@ -198,12 +199,18 @@ class FilterTracker(TrackerBase):
         return t_camera + round(self._td * 1e9)
 
     def _T_CO(self, x: tuple) -> np.ndarray:
-        R_OB = np.array(x[0:9]).reshape(3, 3)
-        R_CO = self._R_CB @ R_OB.T
-        T = np.eye(4)
-        T[:3, :3] = R_CO
-        T[:3, 3] = self._t_CB - R_CO @ np.array(x[9:12])
-        return T
+        """T_CO = T_CB T_OB^-1 of nominal x, on Python floats (several pose conversions per frame)."""
+        b00, b01, b02, b10, b11, b12, b20, b21, b22 = self._R_CB_floats
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = x[0:9]
+        px, py, pz = x[9:12]
+        c00, c01, c02 = b00 * r00 + b01 * r01 + b02 * r02, b00 * r10 + b01 * r11 + b02 * r12, b00 * r20 + b01 * r21 + b02 * r22
+        c10, c11, c12 = b10 * r00 + b11 * r01 + b12 * r02, b10 * r10 + b11 * r11 + b12 * r12, b10 * r20 + b11 * r21 + b12 * r22
+        c20, c21, c22 = b20 * r00 + b21 * r01 + b22 * r02, b20 * r10 + b21 * r11 + b22 * r12, b20 * r20 + b21 * r21 + b22 * r22
+        tx, ty, tz = self._t_CB_floats
+        return np.array([[c00, c01, c02, tx - (c00 * px + c01 * py + c02 * pz)],
+                         [c10, c11, c12, ty - (c10 * px + c11 * py + c12 * pz)],
+                         [c20, c21, c22, tz - (c20 * px + c21 * py + c22 * pz)],
+                         [0.0, 0.0, 0.0, 1.0]])
 
     def _pose_jacobian(self, st: FilterState, t_imu: int) -> np.ndarray:
         return pose_jacobian(st.x, self._R_CB, self._rate_at(t_imu, st.c), st.x[12:15])[2]
@@ -231,21 +238,22 @@ class FilterTracker(TrackerBase):
 
     def sigma_px(self, T_CO: np.ndarray, cov: np.ndarray) -> float:
         """RMS over the box corners of the 1-sigma 2D uncertainty (px) a pose covariance implies."""
-        RX = self._corners_O @ T_CO[:3, :3].T  # (8, 3) corners, rotated
-        x, y, z = (RX + T_CO[:3, 3]).T
+        RX = np.dot(self._corners_O, T_CO[:3, :3].T)  # (n, 3) corners, rotated
+        z = RX[:, 2] + T_CO[2, 3]
         if np.any(z <= 1e-6):
             return float("inf")
         r0, r1, r2 = RX.T
         cam = self.camera
-        # d uv / d e = d uv / d X_c [-[R X_o]x, I]; per row d, the rotation part is -(d x R X_o)
+        # d uv / d e = d uv / d X_c [-[R X_o]x, I]: per row d = (d0, 0 or d1, d2), the rotation part is
+        # -(d x R X_o). Written column by column: a dozen small numpy operations, not a batched einsum.
         iz = 1.0 / z
-        au, cu = cam.fx * iz, -cam.fx * x * iz * iz  # du = (au, 0, cu)
-        bv, cv = cam.fy * iz, -cam.fy * y * iz * iz  # dv = (0, bv, cv)
-        zero = np.zeros_like(z)
-        J = np.stack([
-            np.stack([-(-cu * r1), -(cu * r0 - au * r2), -(au * r1), au, zero, cu], axis=1),
-            np.stack([-(bv * r2 - cv * r1), -(cv * r0), -(-bv * r0), zero, bv, cv], axis=1)]).reshape(-1, 6)
-        return float(np.sqrt(2.0 * np.mean(np.einsum("ij,jk,ik->i", J, cov, J))))
+        au, cu = cam.fx * iz, -cam.fx * (r0 + T_CO[0, 3]) * iz * iz  # du = (au, 0, cu)
+        bv, cv = cam.fy * iz, -cam.fy * (r1 + T_CO[1, 3]) * iz * iz  # dv = (0, bv, cv)
+        J = np.zeros((2, len(z), 6))
+        J[0, :, 0], J[0, :, 1], J[0, :, 2], J[0, :, 3], J[0, :, 5] = cu * r1, au * r2 - cu * r0, -au * r1, au, cu
+        J[1, :, 0], J[1, :, 1], J[1, :, 2], J[1, :, 4], J[1, :, 5] = cv * r1 - bv * r2, -cv * r0, bv * r0, bv, cv
+        J = J.reshape(-1, 6)
+        return float(np.sqrt(2.0 * np.sum(np.dot(J, cov) * J) / len(J)))
 
     # ------------------------------------------------------------------ PIM + requests
     def add_frame(self, t_ns: int) -> FrameResult:
@@ -303,7 +311,9 @@ class FilterTracker(TrackerBase):
         if not o.any():
             return T_CO
         T = T_CO.copy()
-        T[:3, :3] = so3.exp(-o[0:3]) @ T_CO[:3, :3]
+        ox, oy, oz = o[0:3].tolist()
+        # Exp(-o) R = (R^T Exp(o))^T, on floats (`propagation.rotate` right-multiplies)
+        T[:3, :3] = np.array(rotate(tuple(T_CO[:3, :3].T.ravel().tolist()), ox, oy, oz)).reshape(3, 3).T
         T[:3, 3] = T_CO[:3, 3] - o[3:6]
         return T
 
