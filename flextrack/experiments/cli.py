@@ -30,7 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fps", type=float, nargs="+",
                         help=f"table2, bound: frame rates among {list(paper.FPS)} (all four unless given; 30 and 120 with "
                         f"--backend); euroc: the one frame rate (default: {paper.EUROC_FPS:g}, the paper's real-data rate)")
-    parser.add_argument("--in-process", action="store_true", help="call the backend in-process instead of gRPC")
+    parser.add_argument("--in-process", action="store_true",
+                        help="call the backend in-process instead of gRPC (timing always does)")
     parser.add_argument("--jobs", type=int, default=None, metavar="N",
                         help="table2 (oracles), bound: cells run at once, each process with its own backend server "
                         "(default: one per CPU; the figures do not depend on it)")
@@ -99,6 +100,8 @@ def run(args) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     seed_list = list(range(args.seeds)) if grid or args.experiment == "filter" else [args.seed]
+    if args.experiment == "timing":
+        args.in_process = True  # a gRPC server's threads in this process would time the GIL, not the tracker
     if args.experiment == "bound" or (args.experiment == "table2" and args.backend == "oracles"):
         args.jobs = args.jobs or common.default_jobs()  # the provenance records how many ran at once
     record = of_args(args, command="flextrack experiment " + args.experiment, seed_list=seed_list)  # at the start
@@ -116,7 +119,7 @@ def run(args) -> int:
         elif args.experiment == "filter":
             filter_checks.run(args.out, list(range(args.seeds)), args.duration, args.in_process)
         elif args.experiment == "timing":
-            timing.run(args.out, args.seed, args.duration)
+            timing.run(args.out, args.seed, args.duration, in_process=args.in_process)
         else:
             euroc.run(args.out, args.data or euroc.DEFAULT_DATA, args.seed, args.in_process,
                       fps=args.fps[0] if args.fps else euroc.FPS, tracker=custom_tracker(args),
