@@ -183,7 +183,7 @@ def render_filter(folder: Path) -> str:
             peer.append(f"| {cell[0]} {cell[1]} | {fusion} | {mean(sel, 'proj_px'):.2f} | {mean(sel, 'pos_mm'):.2f} | "
                         f"{mean(sel, 'ori_deg'):.3f} | {mean(sel, 'jitter_px'):.2f} | {mean(sel, 'nees_mean'):.2f} | "
                         f"{mean(sel, 'worst_fine_px'):.2f} |")
-    starts, windows = [], []
+    starts, windows, bounds = [], [], []
     for check in ("still_start", "moving_start", "time_offset_20ms"):
         sel = [r for r in rows if r["check"] == check]
         if sel:
@@ -192,6 +192,10 @@ def render_filter(folder: Path) -> str:
             windows.append(f"| {check.replace('_', ' ')} | "
                            + " | ".join(f"{mean(sel, f'proj_px_{w}'):.2f}" for w in WINDOW_NAMES) + " | "
                            + " | ".join(f"{mean(sel, f'nees_{w}'):.1f}" for w in WINDOW_NAMES) + " |")
+            if check != "time_offset_20ms":
+                bounds.append(f"| {check.replace('_', ' ')} | "
+                              + " | ".join(f"{mean(sel, f'proj_px_{w}'):.2f} / {mean(sel, f'bound_px_{w}'):.2f}"
+                                           for w in WINDOW_NAMES) + " |")
     return "\n".join([
         (f"Circular medium and translational hard at 60 FPS, the noisy oracle with its covariance behind a real gRPC "
          f"server, seeds {seeds}, every frame scored; means over seeds. The issue's public C++ error-state EKF (MaRS) on "
@@ -205,6 +209,10 @@ def render_filter(folder: Path) -> str:
         "The same by time after the first pose, 2D px and the filter's NEES (6 for a consistent filter):", "",
         "| start | " + " | ".join(f"px {w}" for w in WINDOW_LABELS) + " | " + " | ".join(f"NEES {w}" for w in WINDOW_LABELS) + " |",
         "|---|" + "---|" * (2 * len(WINDOW_NAMES)), *windows, "",
+        ("Measured / the Riccati bound, px, by the same windows: the least mean error of any estimator that takes the "
+         "motion from the IMU and the pose from these answers, starting from the same initial uncertainty "
+         "(`flextrack/experiments/bound.py`; the noise-free IMU run of each start, its covariances' expected error):"),
+        "", "| start | " + " | ".join(WINDOW_LABELS) + " |", "|---|" + "---|" * len(WINDOW_NAMES), *bounds, "",
         provenance_line(prov, f"flextrack experiment filter --seeds {len(seeds)} --out out/filter") + f" Files: "
         f"`{RESULTS_DIR.as_posix()}/{folder.name}/`."])
 

@@ -135,6 +135,12 @@ def test_filter_checks_write_the_peer_cells_with_provenance(tmp_path, capsys):
     still = next(r for r in rows if r["check"] == "still_start")  # its error and NEES by time after the first pose
     assert np.isfinite(float(still["proj_px_0_1s"])) and np.isfinite(float(still["nees_1_3s"]))
     assert np.isnan(float(still["proj_px_from_10s"]))  # a 4 s run has no frame 10 s after its first pose
+    # the Riccati bound beside them, window by window: a still start's first second is bounded lower than a
+    # moving start's (whose 4 s run ends within its first second)
+    moving = next(r for r in rows if r["check"] == "moving_start")
+    assert 0 < float(still["bound_px_0_1s"]) < float(moving["bound_px_0_1s"])
+    assert np.isfinite(float(still["bound_px_1_3s"])) and np.isnan(float(moving["bound_px_1_3s"]))
+    assert np.isnan(float(next(r for r in rows if r["check"] == "time_offset_20ms")["bound_px_1_3s"]))
     record = json.loads((out / "filter.json").read_text())["provenance"]
     assert record["options"]["seeds"] == [0] and record["date"] and "dirty" in record
     assert "Peer cells" in capsys.readouterr().out

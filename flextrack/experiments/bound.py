@@ -51,7 +51,12 @@ def steady(record: TrackRecord) -> list:
 
 def predicted_px(record: TrackRecord, seed: int) -> float:
     """The mean 2D error the run's own covariances predict, over evenly spaced steady frames."""
-    rows = [r for r in steady(record) if r.covariance is not None]
+    return expected_px(record, steady(record), seed)
+
+
+def expected_px(record: TrackRecord, rows: list, seed: int) -> float:
+    """The mean 2D error the covariances of `rows` (frames of `record`) predict, over up to FRAMES_DRAWN of them."""
+    rows = [r for r in rows if r.covariance is not None]
     rows = rows[::max(1, len(rows) // FRAMES_DRAWN)]
     if not rows:
         return float("nan")

@@ -8,7 +8,10 @@
 2. A moving start: circular medium with the first frame 1 s after full speed (`simulate
    --moving-start`): seconds from the first answer to FINE, error after that second, beside the
    still start's; the 2D error and NEES by time after the first pose (`WINDOWS_S`) show how long the
-   filter takes to learn what a still start measures.
+   filter takes to learn what a still start measures, and the Riccati bound by the same windows
+   (`flextrack.experiments.bound`: the filter on a noise-free IMU with exact answers that claim the
+   noisy oracle's covariance, starting from the same initial uncertainty) how long any estimator
+   with that information would take.
 3. A camera-IMU time offset: the IMU stamps its samples 20 ms late (`simulate --imu-time-offset
    0.02`): the estimated offset and the error beside the same sequence without offset.
 
@@ -18,16 +21,18 @@ Writes filter.md, filter.csv and filter.json (with provenance) under --out.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from client_sdk import TrackerOptions
 from client_sdk.network_model import NetworkOptions
-from flextrack.experiments import common
+from estimators.gt_oracle import GtOracleEstimator
+from flextrack.experiments import bound, common
 from flextrack.formats import sequence as sequence_io
 from flextrack.provenance import provenance
+from flextrack.runners.backends import NOISY_R_DEG, NOISY_T_M
 from flextrack.runners.replay import ReplayOptions, replay
 from flextrack.runners.results import Summary
 from flextrack.runners.session import model_vertices
@@ -41,7 +46,8 @@ WINDOW_NAMES = [f"{a}_{b}s" if b is not None else f"from_{a}s" for a, b in WINDO
 WINDOW_LABELS = [f"{a}-{b} s" if b is not None else f"from {a} s" for a, b in WINDOWS_S]  # in the tables
 HEADER = ["check", "motion", "level", "seed", "fusion", "proj_px", "pos_mm", "ori_deg", "jitter_px", "nees_mean",
           "worst_fine_px", "fine_after_s", "proj_px_after_1s", "time_offset_ms",
-          *(f"proj_px_{w}" for w in WINDOW_NAMES), *(f"nees_{w}" for w in WINDOW_NAMES)]
+          *(f"proj_px_{w}" for w in WINDOW_NAMES), *(f"nees_{w}" for w in WINDOW_NAMES),
+          *(f"bound_px_{w}" for w in WINDOW_NAMES)]  # bound: the still and moving starts only (nan elsewhere)
 
 
 @dataclass
@@ -52,19 +58,36 @@ class Run:
     time_offset_ms: float
     proj_by_window: list[float]  # mean 2D error in each of WINDOWS_S
     nees_by_window: list[float]  # mean NEES in each of WINDOWS_S
+    bound_by_window: list[float] = None  # the Riccati bound's expected 2D error in each (None: not computed)
 
 
 def _sequence(cache: Path, motion: str, level: str, seed: int, duration_s: float, *, moving_start=False,
-              offset_s=0.0):
+              offset_s=0.0, imu="pixel2"):
     from flextrack.simulator.generate import generate_sequence
 
     name = f"{motion}_{level}_{FPS}fps_{duration_s:g}s_seed{seed}" + ("_moving" if moving_start else "") + \
-        (f"_td{offset_s * 1e3:g}ms" if offset_s else "")
+        (f"_td{offset_s * 1e3:g}ms" if offset_s else "") + ("" if imu == "pixel2" else f"_{imu}")
     root = cache / name
     if not (root / "rig.yaml").is_file():
         generate_sequence(motion, level, root, duration_s=duration_s, fps=FPS, seed=seed, moving_start=moving_start,
-                          imu_time_offset_s=offset_s)
+                          imu_time_offset_s=offset_s, imu_profile=imu)
     return sequence_io.load(root)
+
+
+def _windows(rows: list, first) -> list[list]:
+    """The rows in each of WINDOWS_S after the first pose's time."""
+    return [[r for r in rows if first is not None and a <= (r.t_ns - first.t_ns) * 1e-9 < (b or np.inf)]
+            for a, b in WINDOWS_S]
+
+
+def _bound_by_window(oracle: common.OracleBackend, seq, seed: int, ideal) -> list[float]:
+    """The Riccati bound's expected 2D error in each window: the same program and start on a noise-free IMU
+    (`ideal`; the filter still models `seq`'s IMU), answered exactly with the noisy oracle's covariance."""
+    ideal = replace(ideal, imu_noise=seq.imu_noise)
+    oracle.learn(ideal)
+    record = oracle.run(ideal, common.FILTER, ReplayOptions(network=NetworkOptions(seed=seed), estimator=bound.CLAIMING))
+    first = next((r for r in record.rows if r.T_CO is not None), None)
+    return [bound.expected_px(record, w, seed) for w in _windows(record.scored(), first)]
 
 
 def _run(oracle: common.OracleBackend, seq, fusion: str, seed: int) -> Run:
@@ -84,8 +107,7 @@ def _run(oracle: common.OracleBackend, seq, fusion: str, seed: int) -> Run:
     fine = next((r for r in rows if r.status == "FINE"), None)
     scored = record.scored()
     after = [r.proj_px for r in scored if first is not None and r.t_ns > first.t_ns + 1_000_000_000]
-    windows = [[r for r in scored if first is not None and a <= (r.t_ns - first.t_ns) * 1e-9 < (b or np.inf)]
-               for a, b in WINDOWS_S]
+    windows = _windows(scored, first)
     return Run(s, (fine.t_ns - first.t_ns) * 1e-9 if fine and first else float("nan"),
                float(np.mean(after)) if after else float("nan"), getattr(box[0], "time_offset_s", 0.0) * 1e3,
                [_mean_of([r.proj_px for r in w]) for w in windows], [_mean_of([r.nees for r in w]) for w in windows])
@@ -100,7 +122,7 @@ def _row(check, motion, level, seed, fusion, run: Run) -> list:
     s = run.summary
     return [check, motion, level, seed, fusion, s.proj_px, s.pos_mm, s.ori_deg, s.jitter_px, s.nees_mean,
             s.worst_fine_px, run.fine_after_s, run.proj_after_1s, run.time_offset_ms, *run.proj_by_window,
-            *run.nees_by_window]
+            *run.nees_by_window, *(run.bound_by_window or [float("nan")] * len(WINDOWS_S))]
 
 
 def run(out: Path, seeds: list[int], duration_s: float = 30.0, in_process: bool = False) -> list[list]:
@@ -109,7 +131,8 @@ def run(out: Path, seeds: list[int], duration_s: float = 30.0, in_process: bool 
     checks = len(seeds) * (2 * len(PEER_CELLS) + 3)
     with common.progress(checks, "filter") as bar:
         for seed in seeds:
-            with common.OracleBackend(noise_seed=seed, in_process=in_process) as oracle:
+            exact = GtOracleEstimator(bound.CLAIMING, floor_r_deg=NOISY_R_DEG, floor_t_m=NOISY_T_M)
+            with common.OracleBackend(noise_seed=seed, in_process=in_process, extra=(exact,)) as oracle:
                 for motion, level in PEER_CELLS:
                     seq = _sequence(cache, motion, level, seed, duration_s)
                     for fusion in ("filter", "paper"):
@@ -121,13 +144,16 @@ def run(out: Path, seeds: list[int], duration_s: float = 30.0, in_process: bool 
                                       ("still_start", {})):
                     seq = _sequence(cache, "circular", "medium", seed, duration_s, **kwargs)
                     r = _run(oracle, seq, "filter", seed)
+                    if check != "time_offset_20ms":
+                        ideal = _sequence(cache, "circular", "medium", seed, duration_s, imu="ideal", **kwargs)
+                        r.bound_by_window = _bound_by_window(oracle, seq, seed, ideal)
                     rows.append(_row(check, "circular", "medium", seed, "filter", r))
                     bar.set_postfix_str(f"{check}: {r.summary.proj_px:.2f} px")
                     bar.update()
     common.write_csv(out / "filter.csv", HEADER, rows)
     (out / "filter.json").write_text(json.dumps({
         "provenance": provenance(experiment="filter", seeds=seeds, duration_s=duration_s, fps=FPS,
-                                 in_process=in_process, noisy_t_m=0.003, noisy_r_deg=0.3),
+                                 in_process=in_process, noisy_t_m=NOISY_T_M, noisy_r_deg=NOISY_R_DEG),
         "header": HEADER, "rows": rows}, indent=1) + "\n")
     (out / "filter.md").write_text(report(rows, seeds, duration_s, in_process))
     return rows
@@ -171,4 +197,8 @@ def report(rows: list[list], seeds: list[int], duration_s: float, in_process: bo
              if (sel := [r for r in rows if r[0] == check])]
     lines.append(common.markdown_table(["start", *(f"px {w}" for w in WINDOW_LABELS),
                                         *(f"NEES {w}" for w in WINDOW_LABELS)], table))
+    lines += ["", "The Riccati bound by the same windows (px; see flextrack/experiments/bound.py):", ""]
+    table = [[check, *(_mean(sel, f"bound_px_{w}") for w in WINDOW_NAMES)]
+             for check in ("still_start", "moving_start") if (sel := [r for r in rows if r[0] == check])]
+    lines.append(common.markdown_table(["start", *(f"bound {w}" for w in WINDOW_LABELS)], table))
     return "\n".join(lines) + "\n"
