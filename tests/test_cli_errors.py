@@ -132,6 +132,7 @@ def test_flextrack_alone_prints_help_and_exits_2():
 @pytest.mark.parametrize("argv, says", [(["table2", "--fps", "45"], "choose among"),
                                         (["table2", "--set", "px_error=15"], "apply to euroc"),
                                         (["euroc", "--fps", "30", "60"], "one frame rate"),
+                                        (["filter", "--seeds", "0"], "--seeds must be at least 1"),
                                         (["table2", "--backend", "region"], "chained estimator")])
 def test_experiment_options_that_cannot_apply_are_refused(argv, says, tmp_path, capsys):
     assert main(["experiment", *argv, "--out", str(tmp_path)]) == 2

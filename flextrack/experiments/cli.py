@@ -24,8 +24,9 @@ EXPERIMENTS = ("table2", "ablation", "timing", "euroc", "filter", "bound")
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("experiment", choices=EXPERIMENTS)
     parser.add_argument("--out", type=Path, required=True, help="output folder")
-    parser.add_argument("--seeds", type=int, default=1, help="table2, filter, bound: number of seeds (0..N-1)")
-    parser.add_argument("--seed", type=int, default=0, help="ablation, timing, euroc: the seed")
+    parser.add_argument("--seeds", type=int, default=1, help="table2, filter, bound: number of seeds (--seed .. --seed + N - 1)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="ablation, timing, euroc: the seed; table2, filter, bound: the first of --seeds")
     parser.add_argument("--duration", type=float, default=30.0, help="seconds of motion per simulated sequence")
     parser.add_argument("--fps", type=float, nargs="+",
                         help=f"table2, bound: frame rates among {list(paper.FPS)} (all four unless given; 30 and 120 with "
@@ -94,12 +95,15 @@ def run(args) -> int:
         problem = f"--jobs must be at least 1, got {args.jobs}"
     if (args.preset or args.set) and args.experiment != "euroc":
         problem = "--preset and --set apply to euroc (table2, ablation and filter run their own variants)"
+    if args.seeds < 1 or args.seed < 0:
+        problem = f"--seeds must be at least 1 and --seed at least 0, got {args.seeds} and {args.seed}"
     if problem:
         print(f"flextrack experiment {args.experiment}: {problem}", file=sys.stderr)
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
-    seed_list = list(range(args.seeds)) if grid or args.experiment == "filter" else [args.seed]
+    many = grid or args.experiment == "filter"
+    seed_list = list(range(args.seed, args.seed + args.seeds)) if many else [args.seed]
     if args.experiment == "timing":
         args.in_process = True  # a gRPC server's threads in this process would time the GIL, not the tracker
     if args.experiment == "bound" or (args.experiment == "table2" and args.backend == "oracles"):
@@ -108,16 +112,16 @@ def run(args) -> int:
     fps = tuple(int(f) for f in args.fps) if args.fps and grid else None
     try:
         if args.experiment == "table2" and args.backend != "oracles":
-            table2_vision.run(args.out, args.backend, list(range(args.seeds)), args.duration, fps or (30, 120),
+            table2_vision.run(args.out, args.backend, seed_list, args.duration, fps or (30, 120),
                               config=args.config or table2_vision.DEFAULT_CONFIG, backend_ms=args.backend_ms)
         elif args.experiment == "table2":
-            table2.run(args.out, list(range(args.seeds)), args.duration, args.in_process, fps or paper.FPS, jobs=args.jobs)
+            table2.run(args.out, seed_list, args.duration, args.in_process, fps or paper.FPS, jobs=args.jobs)
         elif args.experiment == "bound":
-            bound.run(args.out, list(range(args.seeds)), args.duration, args.in_process, fps or paper.FPS, jobs=args.jobs)
+            bound.run(args.out, seed_list, args.duration, args.in_process, fps or paper.FPS, jobs=args.jobs)
         elif args.experiment == "ablation":
             ablation.run(args.out, args.seed, args.duration, in_process=args.in_process)
         elif args.experiment == "filter":
-            filter_checks.run(args.out, list(range(args.seeds)), args.duration, args.in_process)
+            filter_checks.run(args.out, seed_list, args.duration, args.in_process)
         elif args.experiment == "timing":
             timing.run(args.out, args.seed, args.duration, in_process=args.in_process)
         else:
