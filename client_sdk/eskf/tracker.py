@@ -81,7 +81,6 @@ class FilterTracker(TrackerBase):
         self._rejected = 0  # answers rejected in a row
         self._ease = (np.zeros(6), 0)  # (pose offset still to ease in, camera time it was set)
         self._frame_interval_s = 0.0
-        self.last_chi2: float | None = None
         self.error_dynamics = ErrorDynamics() if fo.record_error_dynamics else None
 
     # ------------------------------------------------------------------ properties
@@ -359,7 +358,6 @@ class FilterTracker(TrackerBase):
         st = self._full_at(tau)
         res = update(st, self._td, T, sigma, self._R_CB, self._t_CB, self._rate_at(tau, st.c),
                      self._rate_noise_var(tau), fo.gate_chi2, fo.gravity_state)
-        self.last_chi2 = res.chi2
         if not res.accepted:
             self._rejected += 1
             if self._rejected < fo.max_rejections:

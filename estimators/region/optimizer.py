@@ -61,10 +61,7 @@ def pose_error(R: np.ndarray, t: np.ndarray, R_ref: np.ndarray, t_ref: np.ndarra
 class OptimizationResult:
     R: np.ndarray
     t: np.ndarray
-    hessian: np.ndarray  # final, image lines + prior, per the wire's error convention
     covariance: np.ndarray  # the image's evidence alone (see the module's docstring)
-    lines_used: int
-    last_lines: Lines | None
 
 
 def optimize(frame: CellImage, K: np.ndarray, model: ViewpointModel, hist: ColourHistograms,
@@ -76,7 +73,6 @@ def optimize(frame: CellImage, K: np.ndarray, model: ViewpointModel, hist: Colou
     R, t = (R0.copy(), t0.copy()) if start is None else (start[0].copy(), start[1].copy())
     damping = np.diag([cfg.damping_rotation] * 3 + [cfg.damping_translation] * 3)
     H = prior_information
-    used, lines = 0, None
     for scale in scales or cfg.scales:
         for _ in range(cfg.iterations_per_scale):
             lines = project_lines(model, R, t, K, shape)
@@ -85,7 +81,6 @@ def optimize(frame: CellImage, K: np.ndarray, model: ViewpointModel, hist: Colou
             mean, var, informative = contour_distributions(frame, hist, lines, scale, cfg.line_model)
             J = line_jacobians(lines, K, t)[informative]
             w = cfg.line_weight / var[informative]
-            used = int(informative.sum())
             H = prior_information + (J * w[:, None]).T @ J
             g = (J * w[:, None]).T @ mean[informative] - prior_information @ pose_error(R, t, R0, t0)
             try:
@@ -96,4 +91,4 @@ def optimize(frame: CellImage, K: np.ndarray, model: ViewpointModel, hist: Colou
             t = t + step[3:]
     floor = np.diag([np.radians(cfg.max_sigma_deg) ** -2] * 3 + [cfg.max_sigma_m ** -2] * 3)
     covariance = np.linalg.inv(floor + (H - prior_information) / cfg.covariance_inflation)
-    return OptimizationResult(R, t, H, 0.5 * (covariance + covariance.T), used, lines)
+    return OptimizationResult(R, t, 0.5 * (covariance + covariance.T))

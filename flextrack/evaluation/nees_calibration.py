@@ -18,7 +18,6 @@ import numpy as np
 
 from flextrack.provenance import provenance
 
-CHI2_6_MEDIAN = 5.348  # scipy.stats.chi2.median(6)
 CHI2_6_Q95 = 12.592  # scipy.stats.chi2.ppf(0.95, 6)
 
 

@@ -18,9 +18,3 @@ def write_tum(path: str | Path, t_ns: np.ndarray, poses: np.ndarray) -> None:
             f.write(f"{int(t) // 1_000_000_000}.{int(t) % 1_000_000_000:09d} "
                     f"{p[0]:.9f} {p[1]:.9f} {p[2]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f} {q[0]:.9f}\n")
 
-
-def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    rows = np.loadtxt(path, comments="#", ndmin=2)
-    t_ns = np.round(rows[:, 0] * 1e9).astype(np.int64)
-    poses = np.stack([se3.from_quat_translation(r[[7, 4, 5, 6]], r[1:4]) for r in rows])
-    return t_ns, poses

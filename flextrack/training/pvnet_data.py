@@ -27,17 +27,11 @@ from flextrack.geometry import se3, so3
 from flextrack.geometry.camera import PinholeCamera, look_at
 
 INPUT_SCALE = 2  # frame -> network input
-OUT_SCALE = 4  # frame -> network output grid
 
 
 def full_to_input(uv: np.ndarray) -> np.ndarray:
     """Frame pixel coordinates -> network-input coordinates (area halving)."""
     return (np.asarray(uv, dtype=float) - 0.5) / INPUT_SCALE
-
-
-def output_grid_to_full(ij_rows: np.ndarray, ij_cols: np.ndarray) -> np.ndarray:
-    """(N, 2) frame coordinates (u, v) of output cells given by row and column indices."""
-    return np.stack([OUT_SCALE * ij_cols + 1.5, OUT_SCALE * ij_rows + 1.5], axis=1).astype(float)
 
 
 def look_at_pose(rng: np.random.Generator, camera: PinholeCamera, target: np.ndarray,
