@@ -74,6 +74,12 @@ def provenance_line(prov: dict, command: str | None = None) -> str:
     return "Source: " + ", ".join(p for p in parts if p) + "."
 
 
+def seed_flags(seeds: list[int]) -> str:
+    """The --seed and --seeds flags that run these consecutive seeds again (none for seed 0 alone)."""
+    first = f" --seed {seeds[0]}" if seeds and seeds[0] else ""
+    return first + (f" --seeds {len(seeds)}" if len(seeds) > 1 else "")
+
+
 def _range(values) -> str:
     lo, hi = float(np.min(values)), float(np.max(values))
     return f"{lo:.2f}" if f"{lo:.2f}" == f"{hi:.2f}" else f"{lo:.2f}-{hi:.2f}"
@@ -147,7 +153,7 @@ def render_table2(folder: Path) -> str:
          "**the filter** (the error-state Kalman filter, the default tracker), and in parentheses the filter's "
          "jitter (RMS frame-to-frame change of the 2D error, px). Noisy backend: 3 mm and 0.3 deg per axis."),
         "", *lines, "", f"Ranges over the cells: {summary}.", "", nees_text, "",
-        provenance_line(prov, "flextrack experiment table2 --out out/table2") + " Files: "
+        provenance_line(prov, f"flextrack experiment table2{seed_flags(seeds)} --out out/table2") + " Files: "
         f"`{RESULTS_DIR.as_posix()}/{folder.name}/` (per-cell position, orientation, NEES and worst-frame columns "
         "too)."])
 
@@ -213,7 +219,7 @@ def render_filter(folder: Path) -> str:
          "motion from the IMU and the pose from these answers, starting from the same initial uncertainty "
          "(`flextrack/experiments/bound.py`; the noise-free IMU run of each start, its covariances' expected error):"),
         "", "| start | " + " | ".join(WINDOW_LABELS) + " |", "|---|" + "---|" * len(WINDOW_NAMES), *bounds, "",
-        provenance_line(prov, f"flextrack experiment filter --seeds {len(seeds)} --out out/filter") + f" Files: "
+        provenance_line(prov, f"flextrack experiment filter{seed_flags(seeds)} --out out/filter") + f" Files: "
         f"`{RESULTS_DIR.as_posix()}/{folder.name}/`."])
 
 
@@ -269,7 +275,7 @@ def render_bound(folder: Path) -> str:
          f"{np.mean([_num(r['nees_mean']) for r in rows]):.2f} for 6 ({_means_by_motion(rows, 'nees_mean')}), "
          f"its rotation block's {np.mean([_num(r['nees_rotation']) for r in rows]):.2f} for 3 "
          f"({_means_by_motion(rows, 'nees_rotation')}). {_runs_inside(rows)}"),
-        "", provenance_line(prov, f"flextrack experiment bound --seeds {len(seeds)} --out out/bound") + " Files: "
+        "", provenance_line(prov, f"flextrack experiment bound{seed_flags(seeds)} --out out/bound") + " Files: "
         f"`{RESULTS_DIR.as_posix()}/{folder.name}/`."])
 
 
@@ -329,7 +335,7 @@ def _render_table2_vision(folder: Path, backend: str) -> str:
                     f"**{_num(cell[m]['proj_px']):.2f}** (jitter {_num(cell[m]['jitter_px']):.2f}, worst FINE "
                     f"{_num(cell[m]['worst_fine_px']):.1f}{_nees(cell[m])})" if m in cell else ""
                     for m in ("translational", "circular")) + " |")
-    command = f"flextrack experiment table2 --backend {backend}"
+    command = f"flextrack experiment table2 --backend {backend}" + seed_flags(prov.get("options", {}).get("seed_list", []))
     if backend_ms != 145.0:
         command += f" --backend-ms {backend_ms:g}"
     return "\n".join([

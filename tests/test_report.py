@@ -55,3 +55,9 @@ def test_a_marker_without_results_is_refused(tmp_path, capsys):
     assert "no renderer for results:nope" in capsys.readouterr().err
     with pytest.raises(FileNotFoundError):
         report.render("table2", tmp_path / "elsewhere")
+
+
+def test_source_lines_name_the_seeds_a_rerun_needs():
+    assert report.seed_flags([0]) == "" and report.seed_flags([]) == ""
+    assert report.seed_flags([0, 1, 2]) == " --seeds 3"
+    assert report.seed_flags([5]) == " --seed 5" and report.seed_flags([10, 11, 12]) == " --seed 10 --seeds 3"
