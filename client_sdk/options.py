@@ -58,7 +58,7 @@ class TrackerOptions:
     gyro_bias_gain: float = 0.05
     """Fraction of the measured gyro-bias error applied per correction. 1.0 is the paper's formula
     taken literally; with a backend noisy at 0.3 deg it turns every correction into a 0.1 rad/s bias
-    jump, so the default averages over ~20 corrections (docs/tracker.md has the sweep)."""
+    jump, so the default averages over ~20 corrections (docs/tracker.md compares the two)."""
     accel_bias_gain: float = 0.05
     """Fraction of the paper's accel-bias estimate V_bias / (t1 - t0) applied per correction."""
     velocity_gain: float = 0.1

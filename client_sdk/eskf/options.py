@@ -73,7 +73,7 @@ class FilterOptions:
     6 dof, 99.9 %)."""
     max_rejections: int = 3
     """This many rejected answers in a row mean the filter, not the backend, is wrong: re-initialise
-    from the next one."""
+    from the last of them."""
 
     # --- What a frame shows ---
     ease_s: float = 0.02
