@@ -204,7 +204,7 @@ def render_filter(folder: Path) -> str:
                                            for w in WINDOW_NAMES) + " |")
     return "\n".join([
         (f"Circular medium and translational hard at 60 FPS, the noisy oracle with its covariance behind a real gRPC "
-         f"server, seeds {seeds}, every frame scored; means over seeds. The issue's public C++ error-state EKF (MaRS) on "
+         f"server, seeds {seeds}, every frame scored; means over seeds. The peer, a public C++ error-state EKF (MaRS), on "
          f"the same inputs: {PEER['proj_px']} px, {PEER['pos_mm']} mm, {PEER['ori_deg']} deg, jitter "
          f"{PEER['jitter_px']} px (goals: below {GOALS['proj_px']} px, {GOALS['ori_deg']} deg, {GOALS['jitter_px']} px)."),
         "", "| cell | tracker | 2D px | pos mm | rot deg | jitter px | NEES | worst FINE px |", "|---|---|---|---|---|---|---|---|",

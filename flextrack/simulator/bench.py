@@ -1,4 +1,4 @@
-"""Simulator speed: `python -m flextrack.simulator.bench` prints the figures docs/benchmarks.md records.
+"""Simulator speed: `python -m flextrack.simulator.bench` prints it.
 
 - seconds to generate a 30 s, 120 FPS sequence folder without frames (IMU 200 Hz, pixel2);
 - milliseconds per rendered 640x480 frame, object only and in the room (scene mode, with mask).
