@@ -17,7 +17,12 @@ from client_sdk.tracker import FrameResult, Tracker
 
 
 def create_tracker(options: TrackerOptions | None, camera, T_BC, bbox_corners_O) -> Tracker | FilterTracker:
-    """The tracker core `options.fusion` names, with the arguments both take."""
+    """The tracker core `options.fusion` names (default: the error-state filter).
+
+    camera: a `flextrack.geometry.camera.PinholeCamera` (px). T_BC: 4x4, maps camera-frame points into
+    the IMU body frame (metres). bbox_corners_O: (8, 3) corners of the object's box in its own frame
+    (metres), in `flextrack.geometry.camera.bbox_corners` order (corner i = lo + bit2(i) ex + bit1(i) ey
+    + bit0(i) ez); the PIA projects them. Invalid arguments raise ValueError."""
     options = options if options is not None else TrackerOptions()
     cls = FilterTracker if options.fusion == "filter" else Tracker
     return cls(options, camera, T_BC, bbox_corners_O)

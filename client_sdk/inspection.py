@@ -22,6 +22,13 @@ from flextrack.geometry.camera import PinholeCamera
 
 
 class Status(enum.Enum):
+    """What a frame's pose is worth (the PIA's verdict; the filter adds its own uncertainty check).
+
+    INITIALIZING: no pose yet (waiting for IMU or the first backend answer). FINE: show it.
+    WRONG_POSE: it moved further than the frame rate allows since the last frame. TRACKING_LOST: the
+    object is out of view or too small, no backend answer came for too long, or (filter) the pose's
+    projected uncertainty is too large. A frame that is not FINE asks the backend again."""
+
     INITIALIZING = "initializing"
     FINE = "fine"
     WRONG_POSE = "wrong_pose"

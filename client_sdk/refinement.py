@@ -49,6 +49,8 @@ class RefinementRequest:
 
 
 class ResponseOutcome(enum.Enum):
+    """What `on_backend_response` did with a backend answer (the comments say when each happens)."""
+
     INITIALIZED = "initialized"  # the first backend pose started tracking
     APPLIED = "applied"  # state reset at the capture time, BSCM run, IMU re-propagated
     REJECTED = "rejected"  # the backend found no pose (ok=False); a new request goes out

@@ -29,6 +29,9 @@ IMU_ROW = 7  # t_s relative to the state time, gyro 3, accel 3
 
 @dataclass
 class TrackerState:
+    """The nominal state at t_ns: the body's pose in the object frame (R_OB, p_OB, m), its velocity
+    (m/s), the gyro and accelerometer biases (rad/s, m/s^2) and gravity in the object frame (m/s^2)."""
+
     t_ns: int
     R_OB: np.ndarray
     p_OB: np.ndarray

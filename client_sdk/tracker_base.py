@@ -18,6 +18,9 @@ from client_sdk.refinement import RefinementRequest, RequestBook, ResponseOutcom
 
 @dataclass(frozen=True)
 class FrameResult:
+    """What `add_frame` returns for one camera frame: its pose, how far to trust it, and whether the
+    shell must send this frame to the backend."""
+
     t_ns: int
     T_CO: np.ndarray | None  # the propagated pose (None only while INITIALIZING); trust it when FINE
     status: Status

@@ -122,7 +122,11 @@ class PnpEstimator(Estimator):
             return EstimateOutput.not_found("pnp put the object behind the camera")
         J = pose_jacobian(T_CO[:3, :3], T_CO[:3, 3], points_3d[idx], K, dist)
         info = information(J, residuals, self.floor_px)
-        if np.linalg.cond(info) > 1e12:
+        try:
+            degenerate = not np.all(np.isfinite(info)) or np.linalg.cond(info) > 1e12
+        except np.linalg.LinAlgError:
+            degenerate = True
+        if degenerate:
             return EstimateOutput.not_found("pnp's keypoints do not fix the pose (degenerate layout)")
         confidence = len(idx) / len(points_3d) * float(np.exp(-0.5 * (rms / self.sigma_px) ** 2))
         return EstimateOutput(Status.OK, T_CO, confidence, covariance=covariance(info, self.inflation),

@@ -20,8 +20,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "track": ("flextrack.runners.track_cli", "replay a sequence folder through the tracker and report its errors"),
     "experiment": ("flextrack.experiments.cli", "rerun the paper's experiments (table2, ablation, timing, euroc) and the filter's own (filter, bound)"),
     "train": ("flextrack.training.cli", "train the PVNet-style network on rendered views and export it to ONNX"),
-    "bench": ("flextrack.benchmarks.cli", "benchmarks that print figures: service throughput, rendering, estimators"),
-    "loadtest": ("flextrack.loadtest.cli", "load-test a running service with many Track streams"),
+    "bench": ("flextrack.benchmarks.cli", "benchmarks that print figures: service throughput and capacity, the tracker core, estimators"),
+    "loadtest": ("flextrack.loadtest.cli", "load-test a running service with many devices (Track streams or Estimate calls)"),
     "report": ("flextrack.report", "regenerate the README's and docs' result sections from docs/results/"),
     "evaluate": ("flextrack.evaluation.cli", "evaluate estimators: prior (score with priors around the ground truth), nees (covariance calibration)"),
 }

@@ -507,6 +507,10 @@ def run(args) -> int:
         for name in sorted(RENDERERS):
             print(f"{name}: {(RENDERERS[name].__doc__ or '').strip()}")
         return 0
+    if not (args.root / RESULTS_DIR).is_dir() or not pages(args.root):
+        print(f"flextrack report: {args.root} holds no {RESULTS_DIR.as_posix()}/ or no pages; give the repository "
+              f"with --root (or run it there)", file=sys.stderr)
+        return 2
     try:
         stale = update(args.root, check=args.check)
     except (KeyError, FileNotFoundError, ValueError) as exc:

@@ -41,7 +41,7 @@ import grpc
 from google.protobuf.message import DecodeError
 
 from flextrack.v1 import pose_estimation_pb2 as pb
-from service.metrics import ServiceMetrics
+from service.metrics import LOADING_ESTIMATORS, ServiceMetrics
 
 SERVICE_PREFIX = "/flextrack.v1.PoseEstimation/"
 REJECTED_CODE = "RESOURCE_EXHAUSTED"
@@ -69,7 +69,9 @@ class AdmissionInterceptor(grpc.aio.ServerInterceptor):
         self._jitter = random.Random(0)
         self.streams = 0  # open Track streams
         self.metrics = metrics
-        self.resolve = resolve or (lambda name: name or "default")
+        # until the server resolves names against its registry (estimators still loading), every request
+        # counts under one label: a client's raw strings must not grow the counters or the metrics page
+        self.resolve = resolve or (lambda name: LOADING_ESTIMATORS)
         self._depth: dict[str, int] = defaultdict(int)  # the event loop is one thread: no lock needed
 
     def depth(self, estimator: str) -> int:

@@ -38,7 +38,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the longest a thread holds Python's GIL while others wait for it (Python's default is "
                              "5): gRPC's poller thread and the estimator threads wait on the busy event loop, and "
                              "every new call or answered frame waited with them (docs/operations.md)")
-    parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+                        help="JSON log lines on stderr from this level up (default: %(default)s)")
     parser.add_argument("--check", metavar="ADDR",
                         help="do not serve: ask the server at ADDR (host:port) for its health; exit 0 if SERVING")
     from service import hardening
@@ -93,6 +94,10 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if not args.drain_s >= 0:
         print(f"flextrack serve: --drain-s must be >= 0, got {args.drain_s}", file=sys.stderr)
+        return 2
+    if args.workers < 1 or not args.max_message_mb > 0 or not args.grace_s >= 0:
+        print(f"flextrack serve: --workers must be >= 1, --max-message-mb > 0 and --grace-s >= 0, got "
+              f"{args.workers}, {args.max_message_mb:g} and {args.grace_s:g}", file=sys.stderr)
         return 2
     if not args.gil_switch_ms > 0:
         print(f"flextrack serve: --gil-switch-ms must be > 0, got {args.gil_switch_ms}", file=sys.stderr)

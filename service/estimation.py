@@ -66,14 +66,20 @@ class EstimationService:
             prior_T_CO=prior_T_CO, prior_covariance=prior_covariance))
         done = time.perf_counter()
         pose = wire.pose_to_pb(out.T_CO) if out.T_CO is not None else None
-        covariance = wire.covariance_to_pb(out.covariance) if out.T_CO is not None else None
+        covariance, message = None, out.message
+        if out.T_CO is not None and out.covariance is not None:
+            try:  # the wire promises a symmetric positive definite 6x6: a bad one is withheld, never sent
+                covariance = wire.covariance_to_pb(wire.check_covariance(out.covariance, "the estimator's covariance"))
+            except wire.BadCovariance as exc:
+                log.warning("covariance withheld", extra={"estimator": estimator.name, "reason": str(exc)})
+                message = clip_message(f"{message}; covariance withheld: {exc}" if message else f"covariance withheld: {exc}")
         # Stage timings only for estimators that report stages: filling the map costs more than the
         # oracle's whole estimate, and server_time_ms already covers a single-stage one.
         stage_ms = {"decode": (decoded - start) * 1e3, "estimate": (done - decoded) * 1e3, **out.stage_ms} \
             if out.stage_ms else None
         return pb.EstimateResponse(
             frame_id=request.frame_id, capture_time_ns=request.capture_time_ns, status=PB_STATUS[out.status],
-            message=out.message, pose=pose, pose_covariance=covariance, confidence=out.confidence,
+            message=message, pose=pose, pose_covariance=covariance, confidence=out.confidence,
             estimator=f"{estimator.name}@{estimator.version}", server_time_ms=(done - start) * 1e3, stage_ms=stage_ms)
 
     def answer(self, request: pb.EstimateRequest) -> pb.EstimateResponse:

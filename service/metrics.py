@@ -28,6 +28,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 
 UNKNOWN_ESTIMATOR = "(unknown)"  # the estimator label of requests for names the registry does not know
+LOADING_ESTIMATORS = "(loading)"  # the label of every request that arrives before the estimators are loaded
 METRICS_PATH = "/metrics"
 
 LATENCY_BUCKETS_S = (0.001, 0.0025, 0.005, 0.01, 0.02, 0.033, 0.05, 0.075, 0.1, 0.15, 0.25, 0.5, 1.0, 2.5)

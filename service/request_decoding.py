@@ -14,6 +14,9 @@ from flextrack.geometry.camera import PinholeCamera
 from flextrack.v1 import pose_estimation_pb2 as pb
 
 DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)  # what OpenCV accepts
+# What a real camera can have: anything outside is refused before an estimator's numerics meet it
+MIN_FOCAL_PX, MAX_FOCAL_PX = 1.0, 1e5
+MAX_DISTORTION = 1e4
 _FORMATS = {pb.Image.JPEG: "JPEG", pb.Image.PNG: "PNG"}
 
 
@@ -30,10 +33,14 @@ def decode_camera(intr: pb.Intrinsics) -> PinholeCamera | None:
         return None
     _finite("intrinsics fx, fy, cx, cy", fx, fy, cx, cy)
     _finite("intrinsics distortion", *distortion)
-    if fx <= 0 or fy <= 0:
-        raise InvalidInput(f"intrinsics fx and fy must be positive, got fx={fx}, fy={fy}")
+    if not (MIN_FOCAL_PX <= fx <= MAX_FOCAL_PX and MIN_FOCAL_PX <= fy <= MAX_FOCAL_PX):
+        raise InvalidInput(f"intrinsics fx and fy must be {MIN_FOCAL_PX:g}..{MAX_FOCAL_PX:g} px, got fx={fx}, fy={fy}")
     if width == 0 or height == 0:
         raise InvalidInput(f"intrinsics width and height must be positive, got {width}x{height}")
+    if not (-width <= cx <= 2 * width and -height <= cy <= 2 * height):
+        raise InvalidInput(f"intrinsics principal point ({cx}, {cy}) is far outside the {width}x{height} image")
+    if any(abs(k) > MAX_DISTORTION for k in distortion):
+        raise InvalidInput(f"distortion coefficients must be within +-{MAX_DISTORTION:g}")
     if len(distortion) not in DISTORTION_LENGTHS:
         raise InvalidInput(f"distortion needs one of {DISTORTION_LENGTHS} coefficients (OpenCV order), "
                            f"got {len(distortion)}")
@@ -71,17 +78,22 @@ def decode_keypoints(keypoints) -> np.ndarray:
     return kp
 
 
+MAX_JPEG_SEGMENTS = 256  # before the frame header; real files have a dozen or two
+
+
 def _jpeg_size(data: bytes) -> tuple[int, int] | None:
-    """(width, height) from a JPEG's frame header (SOFn segment), None when it has none."""
+    """(width, height) from a JPEG's frame header (SOFn segment), None when it has none among its first
+    MAX_JPEG_SEGMENTS segments. Runs of fill bytes are skipped at once: this runs on the event loop,
+    and a hostile header must not make it walk megabytes byte by byte."""
     if data[:2] != b"\xff\xd8":
         return None
     i = 2
-    while i + 9 <= len(data):
-        if data[i] != 0xFF:
+    for _ in range(MAX_JPEG_SEGMENTS):
+        if i + 9 > len(data) or data[i] != 0xFF:
             return None
         marker = data[i + 1]
-        if marker == 0xFF:  # fill byte
-            i += 1
+        if marker == 0xFF:  # fill bytes: go to the last 0xFF of the run, before its marker
+            i = len(data) - len(data[i:].lstrip(b"\xff")) - 1
         elif marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length field
             i += 2
         elif 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # SOFn: precision, height, width

@@ -124,6 +124,32 @@ def test_serve_negative_port_is_refused(capsys):
     assert "--port" in one_line(capsys)
 
 
+@pytest.mark.parametrize("argv, says", [
+    (["serve", "--workers", "0"], "--workers must be >= 1"),
+    (["serve", "--grace-s", "-1"], "--grace-s >= 0"),
+    (["evaluate", "prior", "--bop", "/nonexistent", "--obj-id", "6"], "no BOP split folder"),
+    (["bench", "tracker", "--fps", "0"], "must be > 0"),
+    (["report", "--check", "--root", "/nonexistent"], "holds no docs/results/"),
+    (["simulate", "--fps", "0", "--out", "/nonexistent/x"], "--fps, --imu-rate and --duration must be > 0"),
+    (["loadtest", "--target", "127.0.0.1:1", "--clients", "0", "--out", "/nonexistent/x"], "--clients must be >= 1"),
+])
+def test_bad_values_are_one_line_and_exit_2(argv, says, capsys):
+    assert main(argv) == 2
+    assert says in one_line(capsys)
+
+
+def test_demo_refuses_a_file_for_its_out_folder_before_any_work(tmp_path, capsys):
+    afile = tmp_path / "a_file"
+    afile.write_text("x")
+    assert main(["demo", "--out", str(afile)]) == 2
+    assert "is an existing file" in one_line(capsys)
+
+
+def test_track_set_names_the_unknown_option_and_a_close_one(seq, tmp_path, capsys):
+    assert main(["track", str(seq.root), "--set", "px_eror=3", "--out", str(tmp_path / "o")]) == 2
+    assert "unknown option 'px_eror'; did you mean px_error?" in one_line(capsys)
+
+
 def test_flextrack_alone_prints_help_and_exits_2():
     done = subprocess.run([sys.executable, "-m", "flextrack"], check=False, capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and "usage: flextrack" in done.stderr and "Traceback" not in done.stderr
@@ -133,6 +159,8 @@ def test_flextrack_alone_prints_help_and_exits_2():
                                         (["table2", "--set", "px_error=15"], "apply to euroc"),
                                         (["euroc", "--fps", "30", "60"], "one frame rate"),
                                         (["filter", "--seeds", "0"], "--seeds must be at least 1"),
+                                        (["filter", "--data", "/tmp"], "--data applies to euroc"),
+                                        (["ablation", "--backend", "pvnet"], "--backend applies to table2"),
                                         (["table2", "--backend", "region"], "chained estimator")])
 def test_experiment_options_that_cannot_apply_are_refused(argv, says, tmp_path, capsys):
     assert main(["experiment", *argv, "--out", str(tmp_path)]) == 2

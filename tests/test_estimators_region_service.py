@@ -111,3 +111,33 @@ def test_without_a_prior_region_refuses_and_the_chained_estimator_asks_its_globa
     assert answer.status == pb.EstimateResponse.OK
     np.testing.assert_allclose(wire.pose_from_pb(answer.pose), T, atol=1e-6)
     assert "global" in answer.stage_ms
+
+
+def test_a_prior_claimed_almost_exact_still_gets_a_positive_definite_covariance(world):
+    """A valid but extreme prior (1e-15 std) must not cancel the image's own information out of the
+    answer's covariance: region reports the image's evidence alone, never anything the wire refuses."""
+    stub, png, T, _ = world
+    answer = stub.Estimate(request(png, prior_pb(T, np.eye(6) * 1e-30)))
+    assert answer.status == pb.EstimateResponse.OK, answer.message
+    cov = wire.covariance_from_pb(answer.pose_covariance)  # BadCovariance if it were not SPD
+    assert cov is not None and np.all(np.linalg.eigvalsh(cov) > 0)
+
+
+class Broken(Fixed):
+    """An estimator whose covariance is not positive definite (a plug-in's bug)."""
+
+    kind = "broken"
+
+    def estimate(self, inp):
+        return EstimateOutput(Status.OK, self.T, 0.5, np.diag([1e-4] * 3 + [-1e-4] * 3), message="found it")
+
+
+def test_a_bad_covariance_from_an_estimator_is_withheld_and_said(world):
+    from service.estimation import EstimationService
+
+    _, png, T, obj = world
+    service = EstimationService(EstimatorRegistry([Broken(T)], objects=ObjectRegistry([obj])))
+    answer = service.answer(request(png, estimator="fixed"))
+    assert answer.status == pb.EstimateResponse.OK and answer.HasField("pose")
+    assert not answer.HasField("pose_covariance")  # the client falls back on its documented default
+    assert answer.message.startswith("found it; covariance withheld") and "positive definite" in answer.message

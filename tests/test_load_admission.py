@@ -21,6 +21,7 @@ from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
 from service.admission import AdmissionInterceptor
 from service.hardening import Hardening
+from service.metrics import LOADING_ESTIMATORS
 from service.server import BackgroundServer
 
 
@@ -130,6 +131,14 @@ def test_metrics_endpoint_serves_counts_latency_and_queue_depth(slow_server):
     assert 'flextrack_requests_total{code="NOT_FOUND",estimator="(unknown)",method="Estimate"} 1.0' in text  # not the raw name
     assert 'flextrack_request_latency_seconds_count{estimator="slow",method="Track"} 3.0' in text
     assert 'flextrack_queue_depth{estimator="slow"} 0.0' in text
+
+
+def test_before_the_estimators_are_loaded_every_name_counts_under_one_label():
+    """The server takes calls while its estimators load (health NOT_SERVING): a client's raw estimator names
+    must not key queue depths or metrics series then either."""
+    admission = AdmissionInterceptor(4)
+    names = {admission.resolve(name) for name in ("pnp", "", "x" * 10_000, "unknown:1")}
+    assert names == {LOADING_ESTIMATORS}
 
 
 def test_negative_bound_is_refused():

@@ -67,9 +67,12 @@ def test_intrinsics():
     assert decode_camera(pb.Intrinsics()) is None
     camera = decode_camera(intrinsics(distortion=[0.1, -0.2, 0.0, 0.0, 0.01]))
     assert camera.fx == 500.0 and camera.distortion == (0.1, -0.2, 0.0, 0.0, 0.01)
-    for bad, message in [(intrinsics(fx=0.0), "positive"), (intrinsics(fy=-3.0), "positive"),
+    for bad, message in [(intrinsics(fx=0.0), "fx and fy must be"), (intrinsics(fy=-3.0), "fx and fy must be"),
+                         (intrinsics(fy=1e-12), "fx and fy must be"), (intrinsics(fx=1e7), "fx and fy must be"),
                          (intrinsics(cx=math.nan), "finite"), (intrinsics(fx=math.inf), "finite"),
+                         (intrinsics(cx=1e6), "principal point"),
                          (intrinsics(width=0), "width and height"), (intrinsics(distortion=[0.1, 0.2]), "coefficients"),
+                         (intrinsics(distortion=[-1e300, 0, 0, 0]), "within"),
                          (intrinsics(distortion=[0.1, math.nan, 0, 0]), "finite")]:
         with pytest.raises(InvalidInput, match=message):
             decode_camera(bad)
@@ -81,3 +84,15 @@ def test_keypoints():
     assert decode_keypoints([]).shape == (0, 3)
     with pytest.raises(InvalidInput, match="finite"):
         decode_keypoints([pb.Keypoint(id=0, u=math.nan, v=1.0)])
+
+
+def test_a_hostile_jpeg_header_is_refused_without_walking_it_byte_by_byte():
+    """Megabytes of fill bytes, or of empty segments, before any frame header: refused as soon as the scan
+    gives up (a bounded number of segments, fill runs skipped at once), not after a per-byte walk."""
+    for data in (b"\xff\xd8" + b"\xff" * 7_000_000, b"\xff\xd8" + b"\xff\xe0\x00\x02" * 1_000_000):
+        image = pb.Image(encoding=pb.Image.JPEG, data=data, width=640, height=480)
+        with pytest.raises(InvalidInput):
+            check_image(image, decode_camera(intrinsics(width=640, height=480)))
+    padded = encoded(".jpg")[:2] + b"\xff" * 1000 + encoded(".jpg")[2:]  # fill bytes are legal JPEG
+    check_image(pb.Image(encoding=pb.Image.JPEG, data=padded, width=64, height=48),
+                decode_camera(intrinsics(width=64, height=48)))

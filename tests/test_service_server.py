@@ -146,7 +146,7 @@ BAD_INPUTS = [
     ("missing intrinsics", "pnp", {"intrinsics": pb.Intrinsics()}, grpc.StatusCode.INVALID_ARGUMENT, "intrinsics"),
     ("non-positive focal length", "pnp", {"intrinsics": pb.Intrinsics(fx=-1, fy=500, cx=1, cy=1, width=640,
                                                                       height=480)},
-     grpc.StatusCode.INVALID_ARGUMENT, "positive"),
+     grpc.StatusCode.INVALID_ARGUMENT, "fx and fy must be"),
     ("infinite intrinsics", "oracle", {"intrinsics": pb.Intrinsics(fx=math.inf, fy=500, cx=1, cy=1, width=640,
                                                                    height=480)},
      grpc.StatusCode.INVALID_ARGUMENT, "finite"),

@@ -13,6 +13,10 @@ from dataclasses import dataclass, fields
 
 @dataclass
 class FilterOptions:
+    """The error-state filter's settings (`TrackerOptions.filter`): the IMU's noise, the initial
+    uncertainty, the time offset, how backend answers are weighed and gated, and what a frame shows.
+    The runners fill the IMU densities from the sequence's Kalibr `imu0/sensor.yaml`."""
+
     # --- IMU noise (Kalibr imu0/sensor.yaml) ---
     gyroscope_noise_density: float = 6.63e-5
     """rad/s/sqrt(Hz)."""

@@ -72,7 +72,7 @@ def optimize(frame: CellImage, K: np.ndarray, model: ViewpointModel, hist: Colou
     config's); None when no lines fall in view."""
     R, t = (R0.copy(), t0.copy()) if start is None else (start[0].copy(), start[1].copy())
     damping = np.diag([cfg.damping_rotation] * 3 + [cfg.damping_translation] * 3)
-    H = prior_information
+    H_image = np.zeros((6, 6))  # the image's information alone: the prior's is never subtracted back out
     for scale in scales or cfg.scales:
         for _ in range(cfg.iterations_per_scale):
             lines = project_lines(model, R, t, K, shape)
@@ -81,14 +81,14 @@ def optimize(frame: CellImage, K: np.ndarray, model: ViewpointModel, hist: Colou
             mean, var, informative = contour_distributions(frame, hist, lines, scale, cfg.line_model)
             J = line_jacobians(lines, K, t)[informative]
             w = cfg.line_weight / var[informative]
-            H = prior_information + (J * w[:, None]).T @ J
+            H_image = (J * w[:, None]).T @ J
             g = (J * w[:, None]).T @ mean[informative] - prior_information @ pose_error(R, t, R0, t0)
             try:
-                step = np.linalg.solve(H + damping, g)
+                step = np.linalg.solve(prior_information + H_image + damping, g)
             except np.linalg.LinAlgError:
                 return None
             R = so3.exp(step[:3]) @ R
             t = t + step[3:]
     floor = np.diag([np.radians(cfg.max_sigma_deg) ** -2] * 3 + [cfg.max_sigma_m ** -2] * 3)
-    covariance = np.linalg.inv(floor + (H - prior_information) / cfg.covariance_inflation)
+    covariance = np.linalg.inv(floor + H_image / cfg.covariance_inflation)
     return OptimizationResult(R, t, 0.5 * (covariance + covariance.T))

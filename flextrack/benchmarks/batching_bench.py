@@ -30,14 +30,16 @@ DEFAULT_MODEL = assets.pvnet_model_path()
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", type=Path, default=DEFAULT_MODEL, help="PVNet ONNX model of the default object")
     parser.add_argument("--untrained", action="store_true", help="export a seeded untrained network instead")
-    parser.add_argument("--max-batch", type=int, default=8)
-    parser.add_argument("--batch-delay-ms", type=float, default=5.0)
+    parser.add_argument("--max-batch", type=int, default=8, help="the server's --max-batch in the batched run (default: %(default)s)")
+    parser.add_argument("--batch-delay-ms", type=float, default=5.0,
+                        help="the server's --batch-delay-ms in the batched run (default: %(default)g)")
     parser.add_argument("--clients", type=int, default=8, help="closed-loop Track streams")
     parser.add_argument("--workers", type=int, default=8, help="estimator threads of the unbatched server")
     parser.add_argument("--frames", type=int, default=8, help="rendered frames, cycled")
-    parser.add_argument("--duration", type=float, default=8.0)
-    parser.add_argument("--payload-kb", type=float, default=100.0)
-    parser.add_argument("--out", type=Path, default=Path("out/bench_batching"))
+    parser.add_argument("--duration", type=float, default=8.0, help="seconds measured per run (default: %(default)g)")
+    parser.add_argument("--payload-kb", type=float, default=100.0, help="request size, kB (default: %(default)g)")
+    parser.add_argument("--out", type=Path, default=Path("out/bench_batching"),
+                        help="folder for batching.json and the server's log (default: %(default)s)")
 
 
 def _untrained_model(path: Path, keypoints) -> Path:

@@ -31,12 +31,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="server config (TOML); default: gt_oracle on a generated toy sequence")
     parser.add_argument("--sequence", type=Path, help="sequence folder the clients send (needed with --config)")
     parser.add_argument("--estimators", default="gt_oracle", help="comma-separated estimator names to measure")
-    parser.add_argument("--fps", type=float, default=30.0)
-    parser.add_argument("--payload-kb", type=float, default=100.0)
-    parser.add_argument("--p99-bound-ms", type=float, default=50.0)
+    parser.add_argument("--fps", type=float, default=30.0, help="each device's frame rate, Hz (default: %(default)g)")
+    parser.add_argument("--payload-kb", type=float, default=100.0, help="request size, kB (default: %(default)g)")
+    parser.add_argument("--p99-bound-ms", type=float, default=50.0,
+                        help="a device count is held while its p99 latency stays under this, ms (default: %(default)g)")
     parser.add_argument("--step-s", type=float, default=4.0, help="measured seconds per ramp step")
-    parser.add_argument("--start-clients", type=int, default=4)
-    parser.add_argument("--max-clients", type=int, default=512)
+    parser.add_argument("--start-clients", type=int, default=4, help="devices at the ramp's first step (default: %(default)s)")
+    parser.add_argument("--max-clients", type=int, default=512, help="the ramp stops here (default: %(default)s)")
     parser.add_argument("--channels", type=int, default=1, help="client channels (0 = one per client)")
     parser.add_argument("--max-queue", type=int, default=8, help="admission bound of the server (--max-queue)")
     parser.add_argument("--workers", type=int, default=4, help="estimator threads of the server (--workers)")
@@ -62,7 +63,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--probe-nice", type=int, default=0,
                         help="the lone probe device's nice value; below 0 (root only) it runs ahead of the load "
                         "generator it shares a CPU with, as a phone has its own")
-    parser.add_argument("--out", type=Path, default=Path("out/bench_capacity"))
+    parser.add_argument("--out", type=Path, default=Path("out/bench_capacity"),
+                        help="folder for capacity.json and the servers' logs (default: %(default)s)")
 
 
 def _toy_config(tmp: Path) -> tuple[Path, Path]:

@@ -12,7 +12,7 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "replicas": ("flextrack.benchmarks.replicas_bench", "1-3 server processes behind gRPC round_robin: spread and throughput"),
     "batching": ("flextrack.benchmarks.batching_bench", "dynamic batching on/off for a batch-capable estimator (pvnet)"),
     "container": ("flextrack.benchmarks.container_check", "build the Dockerfile with container-check and check the image serves"),
-    "tracker": ("flextrack.benchmarks.tracker_bench", "tracker core: PIM/PRM per call and PPM per IMU sample; --accuracy"),
+    "tracker": ("flextrack.benchmarks.tracker_bench", "tracker core: PIM/PRM per call and PPM per IMU sample (--accuracy: the paper core's accuracy tables)"),
     "pvnet": ("flextrack.benchmarks.pvnet_bench", "pvnet estimator: decode/inference/voting/PnP ms, frames/s per batch"),
     "region": ("flextrack.benchmarks.region_bench", "region estimator: CPU ms a frame, and the service's frames/s with it"),
     "service": ("flextrack.benchmarks.service_bench", "Track stream and unary Estimate: gt_oracle vs a no-op echo servicer"),

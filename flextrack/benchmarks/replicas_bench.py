@@ -29,15 +29,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--clients", type=int, default=24, help="Track streams (a multiple of 6 spreads evenly)")
     parser.add_argument("--fps", type=float, default=1000.0,
                         help="per-client frame rate; the default is closed loop (next frame when the answer is back)")
-    parser.add_argument("--payload-kb", type=float, default=100.0)
-    parser.add_argument("--duration", type=float, default=6.0)
+    parser.add_argument("--payload-kb", type=float, default=100.0, help="request size, kB (default: %(default)g)")
+    parser.add_argument("--duration", type=float, default=6.0, help="seconds measured per replica count (default: %(default)g)")
     parser.add_argument("--channels", type=int, default=1,
                         help="client channels the streams share; one channel deals its streams out in turn, while "
                              "0 (one per client) leaves each channel's random first pick to spread them")
     parser.add_argument("--config", type=Path, help="server config; default: gt_oracle on a generated toy sequence")
     parser.add_argument("--sequence", type=Path, help="sequence the clients send (with --config)")
-    parser.add_argument("--estimator", default="gt_oracle")
-    parser.add_argument("--out", type=Path, default=Path("out/bench_replicas"))
+    parser.add_argument("--estimator", default="gt_oracle", help="the estimator the requests name (default: %(default)s)")
+    parser.add_argument("--out", type=Path, default=Path("out/bench_replicas"),
+                        help="folder for replicas.json and the replicas' logs (default: %(default)s)")
 
 
 def served(metrics_address: str) -> float:

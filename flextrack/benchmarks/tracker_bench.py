@@ -18,6 +18,7 @@ and BSCM are its options; the filter has its own figures (`flextrack experiment 
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 
 import numpy as np
@@ -151,6 +152,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if not (args.fps > 0 and args.seconds > 0 and args.latency_ms >= 0 and args.slowdown > 0):
+        print("flextrack bench tracker: --fps, --seconds and --slowdown must be > 0 and --latency-ms >= 0",
+              file=sys.stderr)
+        return 2
     if args.accuracy:
         print("| integrator | IMU only ~3 s: mm / deg / px | GT backend: mean / max px |")
         print("|---|---|---|")

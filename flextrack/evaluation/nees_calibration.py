@@ -165,17 +165,20 @@ ESTIMATORS = ("gt_oracle", "pnp", "pvnet")
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("out/nees"),
                         help="folder for nees.json (summaries, provenance) and answers.csv (every held-out answer)")
-    parser.add_argument("--estimators", nargs="+", choices=ESTIMATORS, default=list(ESTIMATORS))
+    parser.add_argument("--estimators", nargs="+", choices=ESTIMATORS, default=list(ESTIMATORS),
+                        help="which estimators to evaluate")
     parser.add_argument("--max-2d-px", type=float, default=20.0,
                         help="the criterion's answers: those with a mean 2D error below this (gross outliers out)")
     parser.add_argument("--tune-seed", type=int, default=1, help="gt_oracle and pnp: the tuning set's seed")
     parser.add_argument("--seed", type=int, default=2, help="gt_oracle and pnp: the held-out set's seed")
     g = parser.add_argument_group("gt_oracle (the paper's Noisy backend on a simulated sequence)")
-    g.add_argument("--oracle-motion", default="circular", choices=("translational", "circular"))
-    g.add_argument("--oracle-level", default="medium", choices=("easy", "medium", "hard"))
+    g.add_argument("--oracle-motion", default="circular", choices=("translational", "circular"),
+                   help="the simulated sequence's motion program (default: %(default)s)")
+    g.add_argument("--oracle-level", default="medium", choices=("easy", "medium", "hard"),
+                   help="its speed level (default: %(default)s)")
     g.add_argument("--oracle-answers", type=int, default=1000, help="frames asked, evenly over the sequence")
-    g.add_argument("--noise-t-m", type=float, default=0.003)
-    g.add_argument("--noise-r-deg", type=float, default=0.3)
+    g.add_argument("--noise-t-m", type=float, default=0.003, help="translation noise per axis, m (default: %(default)g)")
+    g.add_argument("--noise-r-deg", type=float, default=0.3, help="rotation noise per axis, deg (default: %(default)g)")
     g = parser.add_argument_group("pnp (the default object's keypoints projected at random poses, noisy)")
     g.add_argument("--pnp-answers", type=int, default=1000, help="held-out solves")
     g.add_argument("--pnp-tune-answers", type=int, default=4000, help="tuning solves")

@@ -211,8 +211,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="service config declaring it (default: the service's default config)")
     parser.add_argument("--levels", default=DEFAULT_LEVELS, help="prior sigmas per axis, mm:deg, or none")
     parser.add_argument("--draws", type=int, default=5, help="priors per frame and level")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--split", default="test")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the priors drawn around the truth (default: %(default)s)")
+    parser.add_argument("--split", default="test", help="the BOP split folder under --bop (default: %(default)s)")
     parser.add_argument("--limit", type=int, default=None, help="first N frames only")
     parser.add_argument("--fresh", action="store_true", help="every frame a new session (no colour history)")
     parser.add_argument("--out", type=Path, default=None, help="result JSON (default: print only)")
@@ -226,9 +226,14 @@ def run(args: argparse.Namespace) -> int:
         args.config = default_config_path()
     model_path = args.bop / "models" / f"obj_{args.obj_id:06d}.ply"
     object_id = f"obj_{args.obj_id:06d}"
+    if not (args.bop / args.split).is_dir():
+        print(f"flextrack evaluate prior: no BOP split folder {args.bop / args.split} (--bop DATASET --split "
+              f"{args.split})", file=sys.stderr)
+        return 2
     frames = bop_frames(args.bop, args.obj_id, args.split, args.limit)
     if not frames:
-        print(f"no frames of object {args.obj_id} under {args.bop / args.split}", file=sys.stderr)
+        print(f"flextrack evaluate prior: no frames of object {args.obj_id} under {args.bop / args.split}",
+              file=sys.stderr)
         return 2
     width, height = 640, 480
     cam_file = args.bop / "camera.json"

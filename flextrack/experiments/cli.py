@@ -22,7 +22,9 @@ EXPERIMENTS = ("table2", "ablation", "timing", "euroc", "filter", "bound")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("experiment", choices=EXPERIMENTS)
+    parser.add_argument("experiment", choices=EXPERIMENTS,
+                        help="which one; each writes NAME.md (its report), CSV tables, PNG plots, TUM trajectories "
+                        "and NAME.json (options, seeds, commit, date) under --out")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--seeds", type=int, default=1, help="table2, filter, bound: number of seeds (--seed .. --seed + N - 1)")
     parser.add_argument("--seed", type=int, default=0,
@@ -88,11 +90,15 @@ def run(args) -> int:
     problem = out_folder_problem(args.out)
     grid = args.experiment in ("table2", "bound")
     if grid and args.fps and not set(args.fps) <= set(paper.FPS):
-        problem = f"{args.experiment} --fps: choose among {list(paper.FPS)}, got {[f'{f:g}' for f in args.fps]}"
+        problem = f"--fps: choose among {list(paper.FPS)}, got {[f'{f:g}' for f in args.fps]}"
     if args.experiment == "euroc" and args.fps and len(args.fps) != 1:
         problem = "euroc --fps: give one frame rate"
     if args.jobs is not None and args.jobs < 1:
         problem = f"--jobs must be at least 1, got {args.jobs}"
+    if args.data is not None and args.experiment != "euroc":
+        problem = "--data applies to euroc (the others simulate their sequences)"
+    if args.backend != "oracles" and args.experiment != "table2":
+        problem = "--backend applies to table2 (the others run the noisy oracle)"
     if (args.preset or args.set) and args.experiment != "euroc":
         problem = "--preset and --set apply to euroc (table2, ablation and filter run their own variants)"
     if args.seeds < 1 or args.seed < 0:

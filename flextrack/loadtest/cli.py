@@ -49,7 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tls-ca", type=Path, help="connect with TLS, trusting this CA (PEM)")
     parser.add_argument("--tls-server-name", help="name to check in the server's certificate")
     parser.add_argument("--out", type=Path, default=Path("out/loadtest"), help="folder for JSON, CSV and PNG")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seed of the payload bytes, the clients' start offsets and their backoff jitter (default: %(default)s)")
 
 
 def _spec(args: argparse.Namespace):
@@ -126,6 +126,9 @@ def run(args: argparse.Namespace) -> int:
             problem = cli_checks.address_problem(target, "--target")
             if problem:
                 raise ValueError(problem)
+        if args.clients < 1 or not (args.fps > 0 and args.duration > 0 and args.warmup >= 0):
+            raise ValueError(f"--clients must be >= 1, --fps and --duration > 0 and --warmup >= 0, got {args.clients}, "
+                             f"{args.fps:g}, {args.duration:g} and {args.warmup:g}")
         spec, work = _spec(args), _workload(args)
         problem = cli_checks.out_folder_problem(args.out)
         if problem:

@@ -23,6 +23,7 @@ from client_sdk.options import PRESETS, preset
 from client_sdk.slowdown import PIXEL2_FACTOR
 from flextrack.formats import sequence as sequence_io
 from flextrack.runners import session
+from flextrack.runners.cli_checks import out_folder_problem
 from flextrack.runners.results import format_table
 
 # --backend choice -> estimator name in the service's default config
@@ -31,12 +32,14 @@ BACKENDS = {"gt": "gt_oracle", "noisy": "gt_noisy"}
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder")
-    parser.add_argument("--motion", choices=("circular", "translational"), default="circular")
-    parser.add_argument("--level", choices=("easy", "medium", "hard"), default="medium")
+    parser.add_argument("--motion", choices=("circular", "translational"), default="circular",
+                        help="the paper's motion program (default: %(default)s)")
+    parser.add_argument("--level", choices=("easy", "medium", "hard"), default="medium",
+                        help="the program's speed level (default: %(default)s)")
     parser.add_argument("--duration", type=float, default=12.0, help="seconds of motion (after a still start)")
-    parser.add_argument("--fps", type=float, default=120.0)
+    parser.add_argument("--fps", type=float, default=120.0, help="camera frame rate, Hz (default: %(default)g)")
     parser.add_argument("--backend", choices=("gt", "noisy"), default="noisy", help="backend of the live run")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="simulation and backend-noise seed (default: %(default)s)")
     parser.add_argument("--tracker", choices=PRESETS, default="filter",
                         help="tracker: 'filter' (the error-state Kalman filter) or 'paper' (resets to each backend "
                              "pose as the paper does) (default: %(default)s)")
@@ -56,9 +59,13 @@ MIN_DURATION_S = 3.0  # the motion programs ease in over 2 s
 
 
 def run(args) -> int:
+    problem = out_folder_problem(args.out)
     if args.duration < MIN_DURATION_S:
-        print(f"flextrack demo: --duration must be at least {MIN_DURATION_S:g} s (the motion eases in over 2 s)",
-              file=sys.stderr)
+        problem = f"--duration must be at least {MIN_DURATION_S:g} s (the motion eases in over 2 s)"
+    if not args.fps > 0:
+        problem = f"--fps must be > 0, got {args.fps:g}"
+    if problem:
+        print(f"flextrack demo: {problem}", file=sys.stderr)
         return 2
     out = args.out
     out.mkdir(parents=True, exist_ok=True)

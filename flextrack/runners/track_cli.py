@@ -8,6 +8,7 @@ sleeping latency interceptor instead, and `--in-process` skips gRPC in the repla
 from __future__ import annotations
 
 import argparse
+import difflib
 import json
 import sys
 from dataclasses import asdict, fields, replace
@@ -36,10 +37,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "oracles; its gt_oracle estimators are given this sequence (default: the oracles for gt and "
                         "noisy, service/default_config.toml for any other --backend)")
     parser.add_argument("--server", help="HOST:PORT of a running server to use instead of an embedded one")
-    parser.add_argument("--live", action="store_true", help="run in real time through the sleeping interceptor")
+    parser.add_argument("--live", action="store_true", help="run in real time, the network delays and device slowdown applied by waiting (default: a replay in virtual time)")
     parser.add_argument("--speed", type=float, default=1.0, help="with --live: play the sequence this much faster")
     parser.add_argument("--in-process", action="store_true", help="replay without gRPC (same results)")
-    parser.add_argument("--fps", type=float, help="use the sequence's frames nearest to this rate (None: all of them)")
+    parser.add_argument("--fps", type=float, help="use the sequence's frames nearest to this rate, Hz (default: every frame)")
     parser.add_argument("--preset", choices=PRESETS, default="filter",
                         help="tracker: filter (the error-state Kalman filter, for every backend) or paper (the "
                         "paper's PRM + BSCM) (default: %(default)s)")
@@ -53,7 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the paper method's integrator (default: the preset's; the filter always uses midpoint)")
     parser.add_argument("--network", choices=("paper", "real-size", "none"), default="paper",
                         help="paper: 100 kB a request; real-size: the request's serialized size; none: no latency")
-    parser.add_argument("--slowdown", type=float, default=PIXEL2_FACTOR, help="device slowdown (1 = none)")
+    parser.add_argument("--slowdown", type=float, default=PIXEL2_FACTOR, help="device CPU slowdown factor, 1 = none (default: %(default)g, the Pixel 2's)")
     parser.add_argument("--backend-ms", type=float, default=0.0, help="modelled backend compute time (replay)")
     parser.add_argument("--seed", type=int, default=0, help="network and Noisy-backend seed")
     parser.add_argument("--frames", action="store_true", help="send the rendered frames (rendered on demand into the "
@@ -75,14 +76,21 @@ def overrides(pairs: list[str]) -> tuple[dict, dict]:
     known = {f.name for f in fields(TrackerOptions)} - {"filter", "fusion"}
     known_filter = {f.name for f in fields(FilterOptions)}
     out: tuple[dict, dict] = ({}, {})
+    strings = {f.name for f in fields(TrackerOptions) if f.type in ("str", str)}
     for pair in pairs:
         name, sep, value = pair.partition("=")
         group, _, field_name = name.rpartition(".")
-        if not sep or group not in ("", "filter") or field_name not in (known_filter if group else known):
-            raise ValueError(f"--set {pair!r}: expected OPTION=VALUE with OPTION one of {sorted(known)} or "
-                             f"filter.NAME with NAME one of {sorted(known_filter)}")
+        if not sep or group not in ("", "filter"):
+            raise ValueError(f"--set {pair!r}: expected OPTION=VALUE (a tracker option) or filter.NAME=VALUE")
+        names = known_filter if group else known
+        if field_name not in names:
+            close = difflib.get_close_matches(field_name, names, n=3)
+            hint = f"did you mean {', '.join(close)}?" if close else f"one of {', '.join(sorted(names))}"
+            raise ValueError(f"--set {pair!r}: unknown {'filter ' if group else ''}option {field_name!r}; {hint}")
         target = out[1] if group else out[0]
-        if value.lower() in ("true", "false"):
+        if not group and field_name in strings:
+            target[field_name] = value
+        elif value.lower() in ("true", "false"):
             target[field_name] = value.lower() == "true"
         else:
             try:

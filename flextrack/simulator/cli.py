@@ -14,14 +14,15 @@ from flextrack.simulator.trajectory import LEVELS, MOTIONS
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--motion", choices=MOTIONS, default="translational",
                         help="motion program (Table 3); 'static' holds the device still (Allan deviation)")
-    parser.add_argument("--level", choices=LEVELS, default="easy")
+    parser.add_argument("--level", choices=LEVELS, default="easy", help="the program's speed level (default: %(default)s)")
     parser.add_argument("--duration", type=float, default=30.0, help="seconds of motion after the still period")
     parser.add_argument("--fps", type=float, default=120.0, help="camera frame rate")
     parser.add_argument("--imu-rate", type=float, default=200.0, help="IMU sample rate, Hz")
     parser.add_argument("--seed", type=int, default=0, help="seeds the shake, IMU noise, object heading and room")
     parser.add_argument("--object", default="default", help="'default' or the path of a BOP .ply model (mm)")
     parser.add_argument("--object-id", default=None, help="object id in the sequence (default: 'default' or the file stem)")
-    parser.add_argument("--imu-profile", choices=sorted(PROFILES), default="pixel2")
+    parser.add_argument("--imu-profile", choices=sorted(PROFILES), default="pixel2",
+                        help="IMU noise and biases: a Pixel 2, EuRoC's ADIS16448, or none (default: %(default)s)")
     parser.add_argument("--imu-jitter", type=float, default=0.0, help="std of the IMU sampling instants, s")
     parser.add_argument("--still", type=float, default=2.0, help="seconds held still at the start (>= 1)")
     parser.add_argument("--moving-start", action="store_true", help="the first frame comes 1 s after the motion "
@@ -39,6 +40,8 @@ def run(args: argparse.Namespace) -> int:
     from flextrack.simulator.plots import plot_sequence
 
     problem = out_folder_problem(args.out)
+    if not (args.fps > 0 and args.imu_rate > 0 and args.duration > 0):
+        problem = f"--fps, --imu-rate and --duration must be > 0, got {args.fps:g}, {args.imu_rate:g} and {args.duration:g}"
     if problem:
         print(f"flextrack simulate: {problem}", file=sys.stderr)
         return 2

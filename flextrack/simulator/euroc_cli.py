@@ -14,7 +14,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fps", type=float, default=None,
                         help="frame rate (default: cam0's rate_hz from its sensor yaml, e.g. 20 for EuRoC)")
     parser.add_argument("--object", default="default", help="'default' or the path of a BOP .ply model (mm)")
-    parser.add_argument("--object-id", default=None)
+    parser.add_argument("--object-id", default=None, help="the object's id in the sequence (default: \"default\" or the .ply's stem)")
     parser.add_argument("--max-distance", type=float, default=3.0,
                         help="farthest camera-object distance that counts as seen, m (also capped where the "
                              "object's image box falls below the PIA's 1/100 of the frame)")

@@ -231,7 +231,7 @@ def run(args) -> int:
                            jpeg=None if args.jpeg is None else f"{args.jpeg}/{args.jpeg_chroma}",
                            provenance=provenance)
     except (FileNotFoundError, ValueError) as exc:
-        print(f"evaluate: {exc}", file=sys.stderr)
+        print(f"flextrack train pvnet-eval: {exc}", file=sys.stderr)
         return 2
     for group, s in summary.items():
         print(f"{group:>12}: {s['frames']} frames, pose found {s['found']}, proj < 5 px {100 * s['proj_below_5px']:.1f} %, "
