@@ -16,7 +16,7 @@ import numpy as np
 
 from client_sdk import initialization
 from client_sdk.eskf.options import FilterOptions
-from client_sdk.eskf.pose_update import pose_jacobian, skew
+from client_sdk.eskf.pose_update import offset_terms, pose_jacobian, skew
 from client_sdk.eskf.state import BA, BG, TD, TH, FilterState, G, N, V
 from client_sdk.propagation import NS, rotate
 
@@ -39,8 +39,14 @@ def _gravity_from_motion(R_OB: tuple, window: list[tuple], b_g: tuple) -> np.nda
 
 
 def initial_state(x_pose: tuple, T_CO_sigma: np.ndarray, window: list[tuple], R_CB: np.ndarray,
-                  est: initialization.InitEstimate, options: FilterOptions) -> FilterState:
-    """The state at the first answer's time: pose from it (x_pose: R_OB 9, p_OB 3), the rest from the window."""
+                  est: initialization.InitEstimate, options: FilterOptions, gyro: tuple = (0.0, 0.0, 0.0),
+                  gyro_var: float = 0.0) -> FilterState:
+    """The state at the first answer's time: pose from it (x_pose: R_OB 9, p_OB 3), the rest from the window.
+    `gyro`: the raw gyro rate at that time, `gyro_var` its sample noise's variance per axis.
+
+    The answer shows the pose at its time plus the unknown time offset error d_td: on a moving device
+    the first pose's error is -H_pose^-1 (H_td d_td + n), so it starts correlated with d_td (and takes
+    the second-order products of d_td with the rates' errors, as an update does, `offset_terms`)."""
     R_OB = x_pose[0:9]
     if est.still:
         b_g = tuple(est.b_g.tolist())
@@ -57,13 +63,20 @@ def initial_state(x_pose: tuple, T_CO_sigma: np.ndarray, window: list[tuple], R_
     x = tuple(x_pose[0:12]) + (0.0, 0.0, 0.0)
     c = b_g + (0.0, 0.0, 0.0) + tuple(g_O.tolist())
     cov = np.zeros((N, N))
-    # the pose block: the answer's covariance mapped back through the measurement Jacobian
-    _, _, H = pose_jacobian(x, R_CB, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
-    H_inv = np.linalg.inv(H[:, 0:6])
-    cov[0:6, 0:6] = H_inv @ T_CO_sigma @ H_inv.T
     cov[V, V] = np.eye(3) * v_std ** 2
     cov[BG, BG] = np.eye(3) * bg_std ** 2
     cov[BA, BA] = np.eye(3) * options.init_accel_bias_std ** 2
+    td_var = options.time_offset_std_s ** 2
+    cov[TD, TD] = td_var
+    # the pose block: the answer's covariance mapped back through the measurement Jacobian, with the
+    # time offset's share (the velocity is estimated 0: its part of H_td is second order)
+    w = tuple(gyro[i] - b_g[i] for i in range(3))
+    _, _, H = pose_jacobian(x, R_CB, w, (0.0, 0.0, 0.0))
+    H_inv = np.linalg.inv(H[:, 0:6])
+    extra, _ = offset_terms(H, cov, gyro_var)
+    k = -np.dot(H_inv, H[:, TD])
+    cov[0:6, 0:6] = H_inv @ (T_CO_sigma + extra) @ H_inv.T + np.outer(k, k) * td_var
+    cov[0:6, TD] = cov[TD, 0:6] = k * td_var
     if options.gravity_state:
         # g_O = R_OB (b_a - f_mean) moves with the first pose's orientation error and with the accelerometer
         # bias the window could not tell from gravity: d_g = J_th d_theta + J_ba d_ba + noise
@@ -74,5 +87,4 @@ def initial_state(x_pose: tuple, T_CO_sigma: np.ndarray, window: list[tuple], R_
         cross, gg = J @ cov, J @ cov @ J.T + np.eye(3) * g_std ** 2
         cov[G, :], cov[:, G] = cross, cross.T
         cov[G, G] = gg
-    cov[TD, TD] = options.time_offset_std_s ** 2
     return FilterState(x, c, 0.5 * (cov + cov.T))

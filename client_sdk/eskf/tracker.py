@@ -352,6 +352,8 @@ class FilterTracker(TrackerBase):
         buf = self._buf
         if not len(buf) or tau < buf.first_t_ns or (self._anchor is not None and self._base_at(tau) is None):
             return self._outcome(ResponseOutcome.TOO_OLD, "backend pose older than the IMU buffer; dropped")
+        if self._anchor is not None and tau < self._anchor[0]:  # the states before it predate the last update
+            return self._outcome(ResponseOutcome.TOO_OLD, "backend pose older than the last one applied; dropped")
         if self._anchor is None:
             self._initialize(tau, T, sigma)
             return self._outcome(ResponseOutcome.INITIALIZED, "tracking: initialised from the first backend pose" + note)
@@ -363,8 +365,9 @@ class FilterTracker(TrackerBase):
             if self._rejected < fo.max_rejections:
                 return self._outcome(ResponseOutcome.GATED, f"backend pose rejected (chi2 {res.chi2:.1f} > "
                                      f"{fo.gate_chi2}; {self._rejected} in a row)")
+            rejected = self._rejected
             self._initialize(tau, T, sigma)
-            return self._outcome(ResponseOutcome.INITIALIZED, f"{self._rejected} backend poses rejected in a row: "
+            return self._outcome(ResponseOutcome.INITIALIZED, f"{rejected} backend poses rejected in a row: "
                                  "the filter was wrong; re-initialised from the backend's pose")
         self._rejected = 0
         t_shown = self._last_frame_t
@@ -390,7 +393,9 @@ class FilterTracker(TrackerBase):
         self._rejected = 0
         self._td = self.options.filter.time_offset_s
         self._anchor = None
-        st = initial_state(x_pose, sigma, window, self._R_CB, est, self.options.filter)
+        s = self._buf.samples[max(self._buf.index_at_or_before(tau), 0)]
+        st = initial_state(x_pose, sigma, window, self._R_CB, est, self.options.filter, gyro=(s[1], s[2], s[3]),
+                           gyro_var=self._rate_noise_var(tau))
         if self.error_dynamics is not None:
             self.error_dynamics.restart(st.cov)
             st = replace(st, phi=np.eye(st.cov.shape[0]))
