@@ -4,7 +4,7 @@ For each answer with a pose, the NEES (normalised estimation error squared) is e
 e the true error of the pose in the wire convention (flextrack.wire.pose_error: rotation first, both
 in the camera frame) and Sigma the covariance the estimator sent. For a calibrated, Gaussian
 estimator it is chi-square with 6 degrees of freedom, and the mean of N answers is
-Gamma(shape 3N, scale 2/N): its 95 % interval is the criterion (about [5.53, 6.51] for N = 200).
+Gamma(shape 3N, scale 2/N): its 95 % interval is the criterion (about [5.53, 6.49] for N = 200).
 The median (5.35 for chi2(6)) and the share above chi2(6)'s 95 % quantile (12.59; 5 % expected)
 show whether a mean is made by a few outliers.
 """

@@ -13,7 +13,9 @@ in the bound as if they were the data's):
   covariance is then the Kalman filter's, linearised at the truth. That is the least expected error
   of any estimator that, like the filter, takes the motion from the IMU (the Pixel 2's densities
   and random walks from the sequence's Kalibr yaml) and the pose from 3 mm / 0.3 deg answers: it
-  has no motion model of its own, so a smooth motion program's predictability is not in it.
+  has no motion model of its own, so a smooth motion program's predictability is not in it. (It
+  includes the shown pose's easing, about 0.01 px, which an estimator that does not ease would not
+  pay. It is an expectation: single runs scatter on both sides of it.)
 
 A cell whose bound is above 1.0 px cannot be held to 1.0 px by such an estimator on average.
 

@@ -106,7 +106,7 @@ def _run(oracle: common.OracleBackend, seq, fusion: str, seed: int) -> Run:
     after = [r.proj_px for r in scored if first is not None and r.t_ns > first.t_ns + 1_000_000_000]
     windows = _windows(scored, first)
     return Run(s, (fine.t_ns - first.t_ns) * 1e-9 if fine and first else float("nan"),
-               float(np.mean(after)) if after else float("nan"), getattr(box[0], "time_offset_s", 0.0) * 1e3,
+               float(np.mean(after)) if after else float("nan"), getattr(box[0], "time_offset_s", float("nan")) * 1e3,
                [_mean_of([r.proj_px for r in w]) for w in windows], [_mean_of([r.nees for r in w]) for w in windows])
 
 
