@@ -81,6 +81,18 @@ def decode_keypoints(keypoints) -> np.ndarray:
 MAX_JPEG_SEGMENTS = 256  # before the frame header; real files have a dozen or two
 
 
+def _fill_end(data: bytes, i: int) -> int:
+    """The index of the first byte at or after i that is not a JPEG fill byte (0xFF), or len(data).
+    Stripped 64 kB at a time: the work grows with the run, not with the data after it."""
+    while i < len(data):
+        chunk = data[i:i + 65536]
+        rest = len(chunk.lstrip(b"\xff"))
+        if rest:
+            return i + len(chunk) - rest
+        i += len(chunk)
+    return len(data)
+
+
 def _jpeg_size(data: bytes) -> tuple[int, int] | None:
     """(width, height) from a JPEG's frame header (SOFn segment), None when it has none among its first
     MAX_JPEG_SEGMENTS segments. Runs of fill bytes are skipped at once: this runs on the event loop,
@@ -93,7 +105,7 @@ def _jpeg_size(data: bytes) -> tuple[int, int] | None:
             return None
         marker = data[i + 1]
         if marker == 0xFF:  # fill bytes: go to the last 0xFF of the run, before its marker
-            i = len(data) - len(data[i:].lstrip(b"\xff")) - 1
+            i = _fill_end(data, i) - 1
         elif marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length field
             i += 2
         elif 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # SOFn: precision, height, width

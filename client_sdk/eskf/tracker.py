@@ -388,13 +388,13 @@ class FilterTracker(TrackerBase):
         T_OB = np.linalg.inv(T_CO) @ np.vstack([np.hstack([self._R_CB, self._t_CB[:, None]]), [0, 0, 0, 1]])
         x_pose = tuple(T_OB[:3, :3].ravel().tolist()) + tuple(T_OB[:3, 3].tolist())
         window_ns = round(self.options.init_window_s * 1e9)
-        window = self._buf.window(tau - window_ns, tau) or [self._buf.samples[max(self._buf.index_at_or_before(tau), 0)]]
+        at_tau = self._buf.samples[max(self._buf.index_at_or_before(tau), 0)]  # the sample at or before tau
+        window = self._buf.window(tau - window_ns, tau) or [at_tau]
         est = initialization.estimate(window, self.options)
         self._rejected = 0
         self._td = self.options.filter.time_offset_s
         self._anchor = None
-        s = self._buf.samples[max(self._buf.index_at_or_before(tau), 0)]
-        st = initial_state(x_pose, sigma, window, self._R_CB, est, self.options.filter, gyro=(s[1], s[2], s[3]),
+        st = initial_state(x_pose, sigma, window, self._R_CB, est, self.options.filter, gyro=at_tau[1:4],
                            gyro_var=self._rate_noise_var(tau))
         if self.error_dynamics is not None:
             self.error_dynamics.restart(st.cov)
