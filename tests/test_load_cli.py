@@ -43,15 +43,30 @@ def test_loadtest_cli_reports_and_writes_csv_and_plot(oracle, tmp_path, capsys):
 
 
 def test_ramp_finds_the_largest_passing_client_count(oracle, tmp_path, capsys):
+    """Each step ends on an event (every client has 4 answers), not a time window: a busy machine gives
+    fewer answers a second, never an empty step. --duration only bounds a step."""
     registry, seq = oracle
     with BackgroundServer(registry, grace_s=0.0) as srv:
         rc = main(["loadtest", "--target", srv.address, "--ramp", "--clients", "1", "--max-clients", "4", "--fps", "20",
-                   "--payload-kb", "5", "--sequence", str(seq.root), "--duration", "0.4", "--warmup", "0.2",
-                   "--p99-bound-ms", "2000", "--out", str(tmp_path)])
+                   "--payload-kb", "5", "--sequence", str(seq.root), "--answers", "4", "--duration", "120",
+                   "--warmup", "0", "--p99-bound-ms", "4000", "--out", str(tmp_path)])
     assert rc == 0
     ramp = json.loads((tmp_path / "ramp.json").read_text())
     assert ramp["best_clients"] == 4 and [s["clients"] for s in ramp["steps"]] == [1, 2, 4]
+    assert [s["answered"] for s in ramp["steps"]] == [4, 8, 16]
     assert (tmp_path / "ramp.png").exists() and "largest client count" in capsys.readouterr().out
+
+
+def test_ramp_where_every_answer_fails_exits_non_zero_with_the_reason(oracle, tmp_path, capsys):
+    registry, seq = oracle
+    with BackgroundServer(registry, grace_s=0.0) as srv:
+        rc = main(["loadtest", "--target", srv.address, "--ramp", "--clients", "1", "--fps", "20", "--payload-kb", "5",
+                   "--estimator", "no_such_estimator", "--sequence", str(seq.root), "--answers", "3",
+                   "--duration", "120", "--warmup", "0", "--out", str(tmp_path)])
+    out, err = capsys.readouterr()
+    assert rc == 1 and "errors 100.0% of 3 answers -> fail" in out
+    assert err.startswith("flextrack loadtest: no client count passed: 1 clients: 100% of 3 answers were errors")
+    assert "no_such_estimator" in err and len(err.strip().splitlines()) == 1
 
 
 def test_round_robin_over_two_addresses_spreads_the_streams(oracle):
@@ -59,8 +74,9 @@ def test_round_robin_over_two_addresses_spreads_the_streams(oracle):
     hardening = [Hardening(), Hardening()]
     with BackgroundServer(registry, grace_s=0.0, hardening=hardening[0]) as a, \
             BackgroundServer(registry, grace_s=0.0, hardening=hardening[1]) as b:
-        spec = runner.LoadSpec((a.address, b.address), clients=4, fps=30, duration_s=0.6, warmup_s=0.3)
+        spec = runner.LoadSpec((a.address, b.address), clients=4, fps=30, duration_s=120, warmup_s=0, answers=3)
         result = runner.run(spec, workload.from_sequence(seq.root, payload_kb=5))
+    assert len(result.samples) == 12
     served = [h.metrics.count("OK", "Track") for h in hardening]
     assert all(n > 0 for n in served)  # both replicas got streams
     assert sum(served) >= len(result.samples)

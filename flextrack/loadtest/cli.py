@@ -30,7 +30,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="sequence folder whose frame times, intrinsics and rgb/ frames the devices send (an "
                              "oracle answers only a sequence the server has loaded: list its folder in the server "
                              "config's sequence_roots); default: synthetic frames with keypoints")
-    parser.add_argument("--duration", type=float, default=10.0, help="seconds measured (after the warm-up)")
+    parser.add_argument("--duration", type=float, default=10.0,
+                        help="seconds measured (after the warm-up); with --answers, the most a run (a ramp step) "
+                             "may take")
+    parser.add_argument("--answers", type=int, default=0,
+                        help="measure until every client has this many answers (after the warm-up) instead of for "
+                             "--duration: fewer answers a second on a busy machine, never an empty step "
+                             "(default: 0, measure for --duration)")
     parser.add_argument("--warmup", type=float, default=1.0, help="seconds before measuring starts")
     parser.add_argument("--rpc", choices=["track", "estimate"], default="track",
                         help="Track streams (the device's path) or unary Estimate calls")
@@ -67,7 +73,7 @@ def _spec(args: argparse.Namespace):
             metadata = creds.token_metadata(token)
     targets = tuple(t for t in args.target.split(",") if t.strip())
     return LoadSpec(targets, args.clients, args.fps, args.duration, args.warmup, args.rpc, args.channels,
-                    seed=args.seed, metadata=metadata, credentials=credentials, server_name=args.tls_server_name,
+                    seed=args.seed, answers=args.answers, metadata=metadata, credentials=credentials, server_name=args.tls_server_name,
                     await_admission=args.await_admission)
 
 
@@ -129,6 +135,8 @@ def run(args: argparse.Namespace) -> int:
         if args.clients < 1 or not (args.fps > 0 and args.duration > 0 and args.warmup >= 0):
             raise ValueError(f"--clients must be >= 1, --fps and --duration > 0 and --warmup >= 0, got {args.clients}, "
                              f"{args.fps:g}, {args.duration:g} and {args.warmup:g}")
+        if args.answers < 0:
+            raise ValueError(f"--answers must be >= 0, got {args.answers}")
         spec, work = _spec(args), _workload(args)
         problem = cli_checks.out_folder_problem(args.out)
         if problem:
@@ -153,13 +161,26 @@ def run(args: argparse.Namespace) -> int:
         return 0
 
     def show(step: ramp.RampStep) -> None:
-        p99 = step.summary["latency_all"]["p99_ms"]
+        s = step.summary
+        if not s["answered"]:
+            print(f"  {step.clients:4d} clients: no answers in {s['duration_s']:.1f} s ({s['sent']} requests sent) "
+                  "-> fail", flush=True)
+            return
+        p99 = s["latency_all"]["p99_ms"]
         print(f"  {step.clients:4d} clients: p99 {'-' if p99 is None else f'{p99:.1f}'} ms, "
-              f"{step.summary['ok_fps']:.0f} OK/s, errors {step.summary['error_rate']:.1%} "
+              f"{s['ok_fps']:.0f} OK/s, errors {s['error_rate']:.1%} of {s['answered']} answers "
               f"-> {'pass' if step.passed else 'fail'}", flush=True)
 
     best, steps = ramp.ramp(spec, work, args.p99_bound_ms, args.max_error_rate, args.clients, args.max_clients, show)
     ramp.write_ramp(steps, best, args.p99_bound_ms, args.out)
     print(f"largest client count with p99 < {args.p99_bound_ms:g} ms at {args.fps:g} FPS: {best}")
     print(f"wrote {args.out}/ramp.json, ramp.csv, ramp.png")
+    if best == 0:  # not even the first step passed: say why, as the single run does
+        first = steps[0].summary
+        reason = failure(first, args) or (
+            f"p99 {first['latency_all']['p99_ms']:.1f} ms is not under --p99-bound-ms {args.p99_bound_ms:g}"
+            if first["error_rate"] <= args.max_error_rate else
+            f"{first['error_rate']:.1%} of the answers were errors, above --max-error-rate {args.max_error_rate:g}")
+        print(f"flextrack loadtest: no client count passed: {steps[0].clients} clients: {reason}", file=sys.stderr)
+        return 1
     return 0

@@ -12,6 +12,10 @@ call (a gRPC error: server gone, stream refused) it backs off exponentially with
 `client_sdk.transport.Backoff` with its default options), or as long as a refusing server's
 `grpc-retry-pushback-ms` asks, before the next attempt, as the SDK's TrackClient does. Every answer is one `Sample`: send time, latency and an outcome label, `OK`,
 `status:<EstimateResponse.Status>` or `grpc:<StatusCode>` for a failed call or stream.
+
+A run measures for `duration_s`, or, with `answers` set, until every client has that many answers
+measured: an event, not a time window, so that a busy machine gives fewer answers a second, never
+an empty run. `duration_s` then only bounds the run.
 """
 
 from __future__ import annotations
@@ -39,12 +43,13 @@ class LoadSpec:
     targets: tuple[str, ...]
     clients: int
     fps: float = 30.0
-    duration_s: float = 10.0
+    duration_s: float = 10.0  # measured seconds; with `answers`, the most a run may take
     warmup_s: float = 1.0  # samples sent before this are dropped (connection set-up)
     rpc: str = "track"  # "track" (bidi stream) or "estimate" (unary)
     channels: int = 1  # grpc channels the clients share round-robin; 0 = one per client
     deadline_s: float = 5.0  # per unary call; a stream read waiting longer counts as DEADLINE_EXCEEDED
     seed: int = 0
+    answers: int = 0  # > 0: each client stops after this many measured answers (duration_s bounds the run)
     metadata: tuple[tuple[str, str], ...] = ()
     credentials: grpc.ChannelCredentials | None = None  # TLS (and token) credentials; None = plaintext
     server_name: str | None = None  # name to check in the server's certificate, if not the target's host
@@ -57,8 +62,8 @@ class LoadSpec:
         if not self.targets:
             raise ValueError("give at least one target address")
         grpc_target(self.targets)  # refuses a list it cannot balance over
-        if self.clients < 1 or self.fps <= 0 or self.duration_s <= 0 or self.warmup_s < 0:
-            raise ValueError("clients >= 1, fps > 0, duration_s > 0 and warmup_s >= 0 are required")
+        if self.clients < 1 or self.fps <= 0 or self.duration_s <= 0 or self.warmup_s < 0 or self.answers < 0:
+            raise ValueError("clients >= 1, fps > 0, duration_s > 0, warmup_s >= 0 and answers >= 0 are required")
         if self.rpc not in ("track", "estimate"):
             raise ValueError(f"rpc must be 'track' or 'estimate', not {self.rpc!r}")
 
@@ -79,6 +84,7 @@ class LoadResult:
     sent: int = 0  # requests sent after warm-up
     skipped: int = 0  # frame ticks after warm-up not sent because a request was still in flight
     measured_s: float = 0.0
+    last_answer_at: float = 0.0  # perf_counter time of the last measured answer
 
 
 def grpc_target(targets: tuple[str, ...] | list[str]) -> str:
@@ -124,6 +130,7 @@ async def _client(idx: int, spec: LoadSpec, workload: Workload, channel: grpc.ai
     frame = 0
     backoff = Backoff(TransportOptions(seed=spec.seed * 1_000_003 + idx))  # a device's, seeded per client
     call = None
+    measured = 0
     deserialize = pb.EstimateResponse.FromString
     track = channel.stream_stream(TRACK, request_serializer=None, response_deserializer=deserialize)
     estimate = channel.unary_unary(ESTIMATE, request_serializer=None, response_deserializer=deserialize)
@@ -132,7 +139,7 @@ async def _client(idx: int, spec: LoadSpec, workload: Workload, channel: grpc.ai
             now = time.perf_counter()
             if now < next_tick:
                 await asyncio.sleep(next_tick - now)
-            if next_tick >= clock.end:
+            if next_tick >= clock.end or (spec.answers and measured >= spec.answers):
                 return
             request = workload.request(idx, frame)
             sent = time.perf_counter()
@@ -173,13 +180,13 @@ async def _client(idx: int, spec: LoadSpec, workload: Workload, channel: grpc.ai
             ticks = max(1, int(np.ceil((retry_at - next_tick) / period)))  # the next tick after the answer
             next_tick += ticks * period
             if sent >= clock.measure_from:
+                measured += 1
+                result.last_answer_at = max(result.last_answer_at, done)
                 result.sent += 1
                 result.skipped += ticks - 1
                 result.samples.append(Sample(idx, frame - 1, sent - clock.measure_from, (done - sent) * 1e3, outcome))
     finally:
         _cancel(call)
-
-
 
 
 def _cancel(call) -> None:
@@ -189,7 +196,8 @@ def _cancel(call) -> None:
 
 
 async def run_load(spec: LoadSpec, workload: Workload) -> LoadResult:
-    """Run the clients against the target for warm-up + duration and collect every answer."""
+    """Run the clients against the target for warm-up + duration (or until each has `answers` measured
+    answers) and collect every answer."""
     target = grpc_target(spec.targets)
     n_channels = spec.clients if spec.channels == 0 else max(1, min(spec.channels, spec.clients))
     options = channel_options(spec.server_name)
@@ -208,7 +216,11 @@ async def run_load(spec: LoadSpec, workload: Workload) -> LoadResult:
         offsets = rng.uniform(0.0, 1.0 / spec.fps, spec.clients)  # devices are not in step
         await asyncio.gather(*(_client(i, spec, workload, channels[i % n_channels], clock, float(offsets[i]), result)
                                for i in range(spec.clients)))
-        result.measured_s = spec.duration_s
+        if not spec.answers:
+            result.measured_s = spec.duration_s
+        else:  # from the start of measurement to the last answer, or to the bound when none came
+            end = result.last_answer_at if result.samples else time.perf_counter()
+            result.measured_s = max(end - clock.measure_from, 1e-9)
     finally:
         await asyncio.gather(*(ch.close() for ch in channels))
     return result
