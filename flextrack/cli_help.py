@@ -29,7 +29,8 @@ EXAMPLES: dict[str, list[str]] = {
     "track": ["flextrack track out/seq/circ_med --backend noisy --out out/track",
               "flextrack track out/seq/circ_med --backend pvnet --fps 30 --out out/track_pvnet",
               "flextrack track out/seq/mine --preset paper --set px_error=15 --out out/track_mine",
-              "flextrack track out/seq/circ_med --server 127.0.0.1:50051 --backend gt_oracle --live --out out/live"],
+              ("flextrack track out/seq/circ_med --server 127.0.0.1:50051 --backend pvnet_region --out out/server "
+               "# a default `flextrack serve`; its oracles need the folder in sequence_roots")],
     "experiment": ["flextrack experiment table2 --seeds 3 --out out/table2",
                    "flextrack experiment euroc --data MY_RECORDING --fps 30 --set filter.gate_chi2=30 --out out/mine",
                    "flextrack experiment ablation --out out/ablation"],

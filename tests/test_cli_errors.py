@@ -46,16 +46,16 @@ def default_server():
 
 
 def test_loadtest_against_the_default_server_gets_ok_answers(default_server, tmp_path, capsys):
-    rc = main(["loadtest", "--target", default_server.address, "--clients", "2", "--duration", "0.6",
-               "--warmup", "0.2", "--payload-kb", "5", "--out", str(tmp_path)])
+    rc = main(["loadtest", "--target", default_server.address, "--clients", "2", "--answers", "4", "--duration", "120",
+               "--warmup", "0", "--payload-kb", "5", "--out", str(tmp_path)])
     assert rc == 0, capsys.readouterr().err
     summary = json.loads((tmp_path / "load_summary.json").read_text())
-    assert set(summary["outcomes"]) == {"OK"} and summary["answered"] > 5
+    assert set(summary["outcomes"]) == {"OK"} and summary["answered"] == 8
 
 
 def test_loadtest_with_mostly_error_answers_exits_non_zero_saying_why(default_server, tmp_path, capsys):
-    rc = main(["loadtest", "--target", default_server.address, "--clients", "1", "--duration", "0.4",
-               "--warmup", "0.1", "--payload-kb", "5", "--estimator", "gt_oracle", "--out", str(tmp_path)])
+    rc = main(["loadtest", "--target", default_server.address, "--clients", "1", "--answers", "3", "--duration", "120",
+               "--warmup", "0", "--payload-kb", "5", "--estimator", "gt_oracle", "--out", str(tmp_path)])
     assert rc == 1
     err = one_line(capsys)
     assert "status:INVALID_INPUT" in err and "sequence_roots" in err
@@ -78,6 +78,31 @@ def test_track_against_a_server_where_nothing_listens_fails_fast(seq, tmp_path, 
     assert rc == 1 and time.perf_counter() - start < 10
     err = one_line(capsys)
     assert "nothing answered" in err and "flextrack serve" in err
+
+
+@pytest.mark.parametrize("backend, reason", [
+    ("gt", "unknown estimator 'gt'; available: ['gt_oracle', 'gt_noisy'"),
+    ("gt_oracle", "estimator 'gt_oracle' has no sequence 'orbit'"),
+])
+def test_track_names_the_servers_reason_when_it_refuses_the_first_request(default_server, seq, tmp_path, backend,
+                                                                          reason, capsys):
+    """The first request goes out before anything is tracked or rendered; a refusal stops the run with the
+    server's own status and message, not a guess."""
+    rc = main(["track", str(seq.root), "--server", default_server.address, "--backend", backend, "--no-plots",
+               "--out", str(tmp_path / "o")])
+    err = one_line(capsys)
+    assert rc == 1 and f"the server at {default_server.address} refused the first request: INVALID_INPUT: " in err
+    assert reason in err and not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("server", [False, True])
+@pytest.mark.parametrize("backend, reason", [("pnp", "keypoints"), ("region", "cannot give the first pose")])
+def test_track_refuses_up_front_a_backend_that_cannot_work_from_track(default_server, seq, tmp_path, server, backend,
+                                                                      reason, capsys):
+    where = ["--server", default_server.address] if server else []
+    rc = main(["track", str(seq.root), *where, "--backend", backend, "--out", str(tmp_path / "o")])
+    err = one_line(capsys)
+    assert rc == 2 and err.startswith(f"flextrack track: --backend {backend}: ") and reason in err
 
 
 def test_track_non_oracle_backend_uses_the_default_config(seq, tmp_path, capsys):

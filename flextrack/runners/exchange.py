@@ -49,6 +49,8 @@ def apply_answer(tracker, request_id: int, response: pb.EstimateResponse, record
     """Hand one backend answer to the tracker and count it in the record."""
     if response.status != pb.EstimateResponse.OK:
         record.failures += 1
+        if not record.first_refusal:
+            record.first_refusal = f"{pb.EstimateResponse.Status.Name(response.status)}: {response.message}"
         tracker.on_backend_response(request_id, response.capture_time_ns, None, False)
         return
     record.responses += 1

@@ -18,7 +18,11 @@ from __future__ import annotations
 import csv
 import json
 import math
+import pickle
+import tempfile
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
+from itertools import islice
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +59,65 @@ class FrameRow:
     index: int = 0  # position in the record
 
 
+class RowStore(Sequence):
+    """A record's rows: all in memory, or with `keep` set, at most the last `keep` in memory and the older ones
+    pickled, `keep` at a time, to an anonymous temporary file. Why: a live run lasts as long as the device runs,
+    and one row a frame held in memory grows the process without end (~1 kB a frame, 3.5 MiB a minute at 60 FPS);
+    on disk the run's memory levels off, and the whole record is read back, a chunk at a time, only when it is
+    scored or written at the end."""
+
+    def __init__(self, keep: int | None = None):
+        if keep is not None and keep < 1:
+            raise ValueError(f"keep must be >= 1 rows, got {keep}")
+        self.keep = keep
+        self._recent: list[FrameRow] = []
+        self._spilled = 0  # rows on disk
+        self._file = None
+
+    def append(self, row: FrameRow) -> None:
+        self._recent.append(row)
+
+    def full(self) -> bool:
+        """Whether the rows in memory should go to disk (the caller scores them first: rows on disk are final)."""
+        return self.keep is not None and len(self._recent) >= 2 * self.keep
+
+    def spill(self) -> None:
+        """Move all but the last `keep` rows in memory to the file."""
+        out, self._recent = self._recent[:-self.keep], self._recent[-self.keep:]
+        if self._file is None:
+            self._file = tempfile.TemporaryFile(prefix="flextrack-rows-")  # noqa: SIM115 - closed with the record
+        self._file.seek(0, 2)
+        pickle.dump(out, self._file, protocol=pickle.HIGHEST_PROTOCOL)
+        self._spilled += len(out)
+
+    def recent(self) -> list[FrameRow]:
+        """The rows still in memory (the last ones)."""
+        return self._recent
+
+    def __len__(self) -> int:
+        return self._spilled + len(self._recent)
+
+    def __iter__(self) -> Iterator[FrameRow]:
+        position, read = 0, 0
+        while read < self._spilled:
+            self._file.seek(position)
+            chunk = pickle.load(self._file)
+            position = self._file.tell()
+            read += len(chunk)
+            yield from chunk
+        yield from list(self._recent)
+
+    def __getitem__(self, index):
+        if isinstance(index, slice):
+            return list(self)[index]
+        i = index + len(self) if index < 0 else index
+        if not 0 <= i < len(self):
+            raise IndexError("row index out of range")
+        if i >= self._spilled:
+            return self._recent[i - self._spilled]
+        return next(islice(iter(self), i, None))
+
+
 @dataclass
 class Summary:
     frames: int
@@ -85,10 +148,11 @@ class Summary:
 class TrackRecord:
     camera: PinholeCamera
     vertices_O: np.ndarray  # (N, 3) m, the model's vertices (the 2D error uses `metric_points` of them)
-    rows: list[FrameRow] = field(default_factory=list)
+    rows: RowStore = field(default_factory=RowStore)  # RowStore(keep=N): older rows on disk (a live run)
     requests: int = 0
     responses: int = 0
     failures: int = 0
+    first_refusal: str = ""  # the first answer that was not OK: "STATUS: the server's message"
     bad_covariances: int = 0
     time_offset_ms: float = math.nan
     error_dynamics: object | None = None  # the filter's, when it kept them (client_sdk.eskf.error_dynamics)
@@ -107,10 +171,22 @@ class TrackRecord:
         self.rows.append(row)
         if row.T_CO is not None and row.T_gt is not None:
             self._unscored.append(row)
+        if self.rows.full():
+            self._score_pending()  # rows on disk are final
+            self.rows.spill()
         return row
+
+    def last_scored(self) -> FrameRow | None:
+        """The latest frame with its errors filled in, without reading the rows on disk (progress lines)."""
+        self._score_pending()
+        return next((r for r in reversed(self.rows.recent()) if r.T_CO is not None and r.T_gt is not None), None)
 
     def scored(self) -> list[FrameRow]:
         """Frames with an estimate and a ground truth, their errors filled in."""
+        self._score_pending()
+        return [r for r in self.rows if r.T_CO is not None and r.T_gt is not None]
+
+    def _score_pending(self) -> None:
         if self._unscored:
             pending, self._unscored = self._unscored, []
             previous = self._last_error[1] if self._last_error is not None and self._follows(self._last_error[0],
@@ -127,7 +203,6 @@ class TrackRecord:
                 if k == 0 or self._follows(pending[k - 1], row):
                     row.jitter_px = float(jitter[k])
             self._score_nees([r for r in pending if r.covariance is not None])
-        return [r for r in self.rows if r.T_CO is not None and r.T_gt is not None]
 
     @staticmethod
     def _score_nees(rows: list[FrameRow]) -> None:

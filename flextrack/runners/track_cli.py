@@ -36,7 +36,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, help="estimator config (TOML) for the embedded server instead of the "
                         "oracles; its gt_oracle estimators are given this sequence (default: the oracles for gt and "
                         "noisy, service/default_config.toml for any other --backend)")
-    parser.add_argument("--server", help="HOST:PORT of a running server to use instead of an embedded one")
+    parser.add_argument("--server", help="HOST:PORT of a running server to use instead of an embedded one; it must "
+                        "know the sequence: give --backend an estimator of its config (a default `flextrack serve` "
+                        "has gt_oracle, gt_noisy, pvnet and pvnet_region; its oracles answer only sequences under "
+                        "their sequence_roots, so list this folder's parent there, or use pvnet_region)")
     parser.add_argument("--live", action="store_true", help="run in real time, the network delays and device slowdown applied by waiting (default: a replay in virtual time)")
     parser.add_argument("--speed", type=float, default=1.0, help="with --live: play the sequence this much faster")
     parser.add_argument("--in-process", action="store_true", help="replay without gRPC (same results)")
@@ -127,6 +130,61 @@ def argument_problem(args) -> str | None:
     return cli_checks.out_folder_problem(args.out)
 
 
+# Kinds `track` cannot drive: what they need that its requests do not carry.
+UNSUITABLE_KINDS = {
+    "pnp": "pnp estimates from 2D keypoints sent with each request, and track sends frames, not keypoints "
+           "(use pvnet or pvnet_region, or an oracle)",
+    "region": "region only refines the device's prior and cannot give the first pose, which track's first "
+              "request asks for (use pvnet_region: pvnet for the first pose, region after)",
+}
+
+
+def estimator_kind(backend: str, registry, server: str | None) -> str | None:
+    """The kind of estimator `backend` names: in the embedded registry, or as the server lists it (None when
+    it has none of that name: the first request then says so in the server's own words)."""
+    if server is None:
+        return next((e.kind for e in registry if e.name == backend), None)
+    import grpc
+
+    from flextrack.v1 import pose_estimation_pb2 as pb
+    from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
+
+    with grpc.insecure_channel(server) as channel:
+        listed = pb_grpc.PoseEstimationStub(channel).ListEstimators(pb.ListEstimatorsRequest(), timeout=10.0)
+    return next((e.kind for e in listed.estimators if e.name == backend), None)
+
+
+def first_request_refusal(seq, spec: session.RunSpec, registry) -> str | None:
+    """Send the run's first request (no prior, the stand-in image) and give the server's reason when it refuses
+    it (INVALID_INPUT: an unknown estimator, object or sequence; a gRPC error: a stream it does not accept), so a
+    run that cannot work stops before rendering or tracking anything. None when it is answered otherwise."""
+    import grpc
+
+    from client_sdk.transport import make_request
+    from flextrack import wire
+    from flextrack.runners.backends import GrpcBackend, InProcessBackend
+    from flextrack.runners.payload import stand_in_jpeg
+    from flextrack.v1 import pose_estimation_pb2 as pb
+
+    request = make_request(
+        frame_id=int(seq.frame_ids[0]), capture_time_ns=int(seq.frame_times_ns[0]), session_id="track-probe",
+        estimator=spec.backend, object_id=seq.object_id, sequence=seq.name,
+        image=stand_in_jpeg(seq.camera.width, seq.camera.height), width=seq.camera.width,
+        height=seq.camera.height, intrinsics=wire.intrinsics_to_pb(seq.camera))
+    zero = NetworkOptions.zero()
+    backend = InProcessBackend(registry, zero) if spec.server is None else GrpcBackend(spec.server, zero)
+    try:
+        response, _ = backend.call(request)
+    except grpc.RpcError as exc:
+        return f"the server at {spec.server} refused the stream: {exc.code().name}: {exc.details()}"
+    finally:
+        backend.close()
+    if response.status != pb.EstimateResponse.INVALID_INPUT:
+        return None
+    where = "the embedded server" if spec.server is None else f"the server at {spec.server}"
+    return f"{where} refused the first request: INVALID_INPUT: {response.message}"
+
+
 def run(args) -> int:
     problem = argument_problem(args)
     if problem:
@@ -149,8 +207,21 @@ def run(args) -> int:
             backend_compute_ms=args.backend_ms, seed=args.seed, live=args.live, speed=args.speed,
             in_process=args.in_process, config=args.config, server=args.server,
             frames=args.frames or args.backend not in ORACLES)
+        options = tracker_options(args)
+        registry = None if args.server else session.registry_for(seq, spec)
+        kind = estimator_kind(args.backend, registry, args.server)
+        if kind is None and registry is not None:
+            raise ValueError(f"--backend {args.backend}: unknown estimator; available: {registry.names()} "
+                             "(pass --config FILE for an estimator config that lists it)")
+        if kind in UNSUITABLE_KINDS:
+            print(f"flextrack track: --backend {args.backend}: {UNSUITABLE_KINDS[kind]}", file=sys.stderr)
+            return 2
+        refusal = first_request_refusal(seq, spec, registry)
+        if refusal:
+            print(f"flextrack track: {refusal}", file=sys.stderr)
+            return 1
         progress = ProgressPrinter(sys.stderr, every_s=args.progress_every)
-        record = session.track(seq, tracker_options(args), spec, progress=progress)
+        record = session.track(seq, options, spec, progress=progress, registry=registry)
     except (FileNotFoundError, ValueError, ConnectionError, RuntimeError) as exc:
         print(f"flextrack track: {exc}", file=sys.stderr)
         return 2
@@ -176,6 +247,9 @@ def run(args) -> int:
     print(f"wrote {args.out}/{name}_*")
     reason = accounting.nothing_scored_reason()
     if reason:
+        if record.first_refusal and not record.responses:  # the server's own words, not a guess
+            reason = f"the backend answered none of its {record.requests} requests; its first refusal: " \
+                     f"{record.first_refusal}"
         print(f"flextrack track: nothing scored: {reason}", file=sys.stderr)
         return 1
     return 0
