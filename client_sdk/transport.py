@@ -7,9 +7,9 @@ stream breaks, every request in flight is reported to `on_failure` (so the track
 and the client reconnects with exponential backoff and jitter, or later where a server at capacity
 says when (gRPC's `grpc-retry-pushback-ms` trailer). Nothing it does raises into the caller.
 
-`make_request` builds an `EstimateRequest` carrying the frame (JPEG bytes from the shell, which
-sends a stand-in of the paper's 90 kB when it renders no image) and the tracker's ~10 kB state as
-`client_state`.
+`make_request` builds an `EstimateRequest` carrying the frame, or the crop of it that
+`client_sdk.crop` chose (JPEG bytes from the shell, which sends a stand-in of the paper's 90 kB when
+it renders no image), and the tracker's ~10 kB state as `client_state`.
 """
 
 from __future__ import annotations
@@ -54,13 +54,15 @@ def make_request(*, frame_id: int, capture_time_ns: int, session_id: str = "", e
                  object_id: str = "", sequence: str = "", image: bytes | None = None,
                  encoding: int = pb.Image.JPEG, width: int = 0, height: int = 0,
                  intrinsics: pb.Intrinsics | None = None, client_state: bytes = b"",
-                 prior: pb.PosePrior | None = None) -> pb.EstimateRequest:
-    """An `EstimateRequest` for one frame (`image=None`: no image at all; `prior`: see `prior_of`)."""
+                 prior: pb.PosePrior | None = None, crop: pb.Crop | None = None) -> pb.EstimateRequest:
+    """An `EstimateRequest` for one frame (`image=None`: no image at all; `prior`: see `prior_of`). `width` and
+    `height` are the image's; with a `crop` (client_sdk.crop) the image holds that rectangle of the frame and
+    `intrinsics` stay the full frame's."""
     return pb.EstimateRequest(
         session_id=session_id, frame_id=int(frame_id), capture_time_ns=int(capture_time_ns),
         estimator=estimator, object_id=object_id, sequence=sequence,
         image=None if image is None else pb.Image(encoding=encoding, data=image, width=width, height=height),
-        intrinsics=intrinsics, client_state=client_state, prior=prior)
+        intrinsics=intrinsics, client_state=client_state, prior=prior, crop=crop)
 
 
 def prior_of(tracker, capture_time_ns: int) -> pb.PosePrior | None:

@@ -66,6 +66,7 @@ class EstimationService:
         estimator = self.registry.get(request.estimator)
         camera = request_decoding.decode_camera(request.intrinsics)
         keypoints = request_decoding.decode_keypoints(request.keypoints)
+        camera, keypoints = request_decoding.decode_crop(request, camera, keypoints)  # a crop: its own camera
         prior_T_CO, prior_covariance = request_decoding.decode_prior(request)
         if estimator.uses_image:
             image = request_decoding.decode_image(request.image, camera)

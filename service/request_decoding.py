@@ -78,6 +78,35 @@ def decode_keypoints(keypoints) -> np.ndarray:
     return kp
 
 
+
+def decode_crop(request: pb.EstimateRequest, camera: PinholeCamera | None,
+                keypoints: np.ndarray) -> tuple[PinholeCamera | None, np.ndarray]:
+    """The camera and keypoints of the pixels the image holds: unchanged for a whole frame; for a crop
+    (protos: `Crop`), the full frame's camera with its principal point moved by the crop's offset and
+    its size the crop's, and the keypoints moved likewise. Every estimator then reads a crop as an
+    image of its own, and its pose stays T_CO in the camera frame."""
+    if not request.HasField("crop"):
+        return camera, keypoints
+    c = request.crop
+    if not (c.x or c.y or c.width or c.height):
+        return camera, keypoints
+    if camera is None:
+        raise InvalidInput("a crop needs the full frame's intrinsics (fx, fy, cx, cy, width, height)")
+    if c.width == 0 or c.height == 0:
+        raise InvalidInput(f"crop width and height must be positive, got {c.width}x{c.height}")
+    if c.x + c.width > camera.width or c.y + c.height > camera.height:
+        raise InvalidInput(f"crop {c.width}x{c.height} at ({c.x}, {c.y}) reaches past the {camera.width}x"
+                           f"{camera.height} frame of the intrinsics")
+    image = request.image
+    if (image.width, image.height) != (c.width, c.height):
+        raise InvalidInput(f"image is {image.width}x{image.height} but the crop is {c.width}x{c.height}: "
+                           f"the image holds the crop")
+    cropped = PinholeCamera(camera.fx, camera.fy, camera.cx - c.x, camera.cy - c.y, c.width, c.height,
+                            camera.distortion)
+    if len(keypoints):
+        keypoints = keypoints - np.array([0.0, c.x, c.y])
+    return cropped, keypoints
+
 MAX_JPEG_SEGMENTS = 256  # before the frame header; real files have a dozen or two
 
 

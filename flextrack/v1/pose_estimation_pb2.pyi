@@ -91,8 +91,20 @@ class PosePrior(_message.Message):
     covariance: PoseCovariance
     def __init__(self, pose: _Optional[_Union[Pose, _Mapping]] = ..., covariance: _Optional[_Union[PoseCovariance, _Mapping]] = ...) -> None: ...
 
+class Crop(_message.Message):
+    __slots__ = ("x", "y", "width", "height")
+    X_FIELD_NUMBER: _ClassVar[int]
+    Y_FIELD_NUMBER: _ClassVar[int]
+    WIDTH_FIELD_NUMBER: _ClassVar[int]
+    HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    x: int
+    y: int
+    width: int
+    height: int
+    def __init__(self, x: _Optional[int] = ..., y: _Optional[int] = ..., width: _Optional[int] = ..., height: _Optional[int] = ...) -> None: ...
+
 class EstimateRequest(_message.Message):
-    __slots__ = ("session_id", "frame_id", "capture_time_ns", "estimator", "object_id", "image", "intrinsics", "keypoints", "sequence", "client_state", "prior")
+    __slots__ = ("session_id", "frame_id", "capture_time_ns", "estimator", "object_id", "image", "intrinsics", "keypoints", "sequence", "client_state", "prior", "crop")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     FRAME_ID_FIELD_NUMBER: _ClassVar[int]
     CAPTURE_TIME_NS_FIELD_NUMBER: _ClassVar[int]
@@ -104,6 +116,7 @@ class EstimateRequest(_message.Message):
     SEQUENCE_FIELD_NUMBER: _ClassVar[int]
     CLIENT_STATE_FIELD_NUMBER: _ClassVar[int]
     PRIOR_FIELD_NUMBER: _ClassVar[int]
+    CROP_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     frame_id: int
     capture_time_ns: int
@@ -115,7 +128,8 @@ class EstimateRequest(_message.Message):
     sequence: str
     client_state: bytes
     prior: PosePrior
-    def __init__(self, session_id: _Optional[str] = ..., frame_id: _Optional[int] = ..., capture_time_ns: _Optional[int] = ..., estimator: _Optional[str] = ..., object_id: _Optional[str] = ..., image: _Optional[_Union[Image, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., keypoints: _Optional[_Iterable[_Union[Keypoint, _Mapping]]] = ..., sequence: _Optional[str] = ..., client_state: _Optional[bytes] = ..., prior: _Optional[_Union[PosePrior, _Mapping]] = ...) -> None: ...
+    crop: Crop
+    def __init__(self, session_id: _Optional[str] = ..., frame_id: _Optional[int] = ..., capture_time_ns: _Optional[int] = ..., estimator: _Optional[str] = ..., object_id: _Optional[str] = ..., image: _Optional[_Union[Image, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., keypoints: _Optional[_Iterable[_Union[Keypoint, _Mapping]]] = ..., sequence: _Optional[str] = ..., client_state: _Optional[bytes] = ..., prior: _Optional[_Union[PosePrior, _Mapping]] = ..., crop: _Optional[_Union[Crop, _Mapping]] = ...) -> None: ...
 
 class EstimateResponse(_message.Message):
     __slots__ = ("frame_id", "capture_time_ns", "status", "message", "pose", "confidence", "estimator", "server_time_ms", "stage_ms", "pose_covariance")
