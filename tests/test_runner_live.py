@@ -2,6 +2,7 @@
 
 import json
 
+import numpy as np
 import pytest
 
 from client_sdk import TrackerOptions
@@ -11,6 +12,7 @@ from flextrack.formats import sequence as sequence_io
 from flextrack.runners import session
 from flextrack.runners.backends import oracle_registry
 from flextrack.runners.live import LiveOptions, run_live
+from flextrack.runners.results import RowStore, TrackRecord
 from flextrack.simulator.generate import generate_sequence
 from service.server import BackgroundServer
 
@@ -26,14 +28,43 @@ def test_live_run_through_the_sleeping_interceptor(short_seq):
     seen = []
     with BackgroundServer(oracle_registry([short_seq.root]), grace_s=0.0) as server:
         record = run_live(short_seq, server.address, session.model_vertices(short_seq), TrackerOptions(),
-                          LiveOptions(network=NetworkOptions(seed=1), speed=2.0), progress=seen.append,
+                          LiveOptions(network=NetworkOptions(seed=1), speed=2.0, keep_rows=16), progress=seen.append,
                           progress_every_s=0.1)
+    # nothing grows with the frames unless asked: no error dynamics, at most 2 x keep_rows rows in memory
+    assert record.error_dynamics is None and len(record.rows.recent()) < 32 < len(record.rows)
     summary = record.summarize()
     assert summary.frames == len(short_seq.frame_ids)
     assert summary.requests >= 10 and summary.responses >= summary.requests - 2  # the last may be in flight
     assert summary.failures == 0
     assert summary.proj_px < 0.5, summary
     assert seen and seen[-1].t_s == pytest.approx(seen[-1].total_s)
+
+
+def test_a_record_with_its_older_rows_on_disk_scores_and_writes_the_same(short_seq, tmp_path):
+    rng = np.random.default_rng(0)
+    vertices = session.model_vertices(short_seq)
+    records = [TrackRecord(short_seq.camera, vertices), TrackRecord(short_seq.camera, vertices, RowStore(keep=7))]
+    T_gt = np.eye(4)
+    T_gt[2, 3] = 0.6
+    for i in range(100):
+        T = T_gt.copy()
+        T[:3, 3] += rng.normal(0, 1e-3, 3)
+        status = "FINE" if i % 3 else "LOST"
+        for record in records:
+            record.add(i, 1_000_000 * i, status, None if i % 17 == 0 else T, None if i % 13 == 0 else T_gt,
+                       np.eye(6) * 1e-6)
+            if i == 50:
+                record.last_scored()  # a progress line in the middle of the run
+    memory, disk = records
+    assert len(disk.rows.recent()) < 14 and len(disk.rows) == 100 and disk.rows[3].frame_id == 3
+    assert disk.rows[-1].frame_id == 99 and [r.frame_id for r in disk.rows] == list(range(100))
+    assert repr(disk.summarize()) == repr(memory.summarize())  # repr: nan == nan
+    assert repr([(r.proj_px, r.jitter_px, r.nees) for r in disk.scored()]) == \
+        repr([(r.proj_px, r.jitter_px, r.nees) for r in memory.scored()])
+    memory.write(tmp_path / "memory")
+    disk.write(tmp_path / "disk")
+    for name in ("track_frames.csv", "track_estimate.tum", "track_summary.json"):
+        assert (tmp_path / "disk" / name).read_text() == (tmp_path / "memory" / name).read_text()
 
 
 def test_live_run_without_a_server_fails_cleanly(short_seq):

@@ -2,7 +2,9 @@
 (scaled by `speed`), requests go out over a `TrackClient` whose `LatencyInterceptor` sleeps the
 modelled network delays, and every frontend call is stretched by the device slowdown.
 
-This is the shell a device would have: the same tracker core as the replay, fed by the clock.
+This is the shell a device would have: the same tracker core as the replay, fed by the clock. Its memory
+levels off however long it runs: the filter keeps no error dynamics unless asked, and the record keeps its last
+`keep_rows` rows in memory, the older ones on disk.
 Responses arrive on the transport's thread and are applied by the main loop between events, so
 the core is only ever touched by one thread. Unlike the replay, two live runs differ (real
 scheduling and real delays); the errors they report are of the same size.
@@ -25,7 +27,7 @@ from client_sdk.transport import TrackClient, TransportOptions
 from flextrack.formats.sequence import Sequence
 from flextrack.runners.exchange import apply_answer, finish, frame_request, tracker_for
 from flextrack.runners.payload import stand_in_jpeg
-from flextrack.runners.results import TrackRecord
+from flextrack.runners.results import RowStore, TrackRecord
 from flextrack.v1 import pose_estimation_pb2 as pb
 
 
@@ -38,6 +40,11 @@ class LiveOptions:
     transport: TransportOptions = field(default_factory=TransportOptions)
     connect_timeout_s: float = 10.0
     session_id: str = "live"
+    # What grows with the frames is asked for, never implied: the filter's error dynamics (the model NEES
+    # interval; without them the summary takes the interval from the NEES series' autocorrelation) and how
+    # many of the record's rows stay in memory (the older ones go to a temporary file).
+    record_error_dynamics: bool = False
+    keep_rows: int = 1024
 
 
 @dataclass
@@ -63,9 +70,9 @@ def run_live(seq: Sequence, address: str, vertices_O: np.ndarray, tracker_option
     `frame_jpeg(frame_id)` gives the image a request carries (default: the 90 kB stand-in)."""
     if options.speed <= 0:
         raise ValueError(f"speed must be > 0, got {options.speed}")
-    tracker = tracker_for(seq, vertices_O, tracker_options)
+    tracker = tracker_for(seq, vertices_O, tracker_options, options.record_error_dynamics)
     slowdown = Slowdown(options.slowdown)
-    record = TrackRecord(seq.camera, vertices_O)
+    record = TrackRecord(seq.camera, vertices_O, RowStore(options.keep_rows))
     image = stand_in_jpeg(seq.camera.width, seq.camera.height)
     inbox: queue.Queue = queue.Queue()
     pending: dict[int, object] = {}  # wire frame id -> the tracker's RefinementRequest

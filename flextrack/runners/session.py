@@ -111,8 +111,8 @@ def track(seq: Sequence, tracker_options: TrackerOptions, spec: RunSpec,
 
 def print_progress(p: Progress, stream=sys.stderr) -> None:
     """One self-overwriting status line."""
-    rows = p.record.scored()
-    last = rows[-1].proj_px if rows else float("nan")
+    row = p.record.last_scored()  # not scored(): that reads a live record's rows back from disk
+    last = row.proj_px if row is not None else float("nan")
     line = (f"\r  t {p.t_s:5.1f}/{p.total_s:.1f} s  frames {len(p.record.rows):5d}  {p.status:<14}  "
             f"2D err {last:6.2f} px  requests {p.record.requests:4d}  answers {p.record.responses:4d}  "
             f"{'connected' if p.connected else 'RECONNECTING'}")
