@@ -28,6 +28,9 @@ def _finite(name: str, *values: float) -> None:
 def decode_camera(intr: pb.Intrinsics) -> PinholeCamera | None:
     """The request's camera, or None when it carries no intrinsics at all."""
     fx, fy, cx, cy, width, height = intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height
+    if len(intr.distortion) not in DISTORTION_LENGTHS:  # counted before anything walks (or formats) them
+        raise InvalidInput(f"distortion needs one of {DISTORTION_LENGTHS} coefficients (OpenCV order), "
+                           f"got {len(intr.distortion)}")
     distortion = tuple(intr.distortion)
     if not (fx or fy or cx or cy or width or height or distortion):
         return None
@@ -41,9 +44,6 @@ def decode_camera(intr: pb.Intrinsics) -> PinholeCamera | None:
         raise InvalidInput(f"intrinsics principal point ({cx}, {cy}) is far outside the {width}x{height} image")
     if any(abs(k) > MAX_DISTORTION for k in distortion):
         raise InvalidInput(f"distortion coefficients must be within +-{MAX_DISTORTION:g}")
-    if len(distortion) not in DISTORTION_LENGTHS:
-        raise InvalidInput(f"distortion needs one of {DISTORTION_LENGTHS} coefficients (OpenCV order), "
-                           f"got {len(distortion)}")
     return PinholeCamera(fx, fy, cx, cy, width, height, distortion)
 
 
@@ -61,6 +61,9 @@ def decode_prior(request: pb.EstimateRequest) -> tuple[np.ndarray | None, np.nda
     if abs(float(np.linalg.norm(q)) - 1.0) > 1e-3:
         raise InvalidInput(f"prior pose must be a rigid transform: its quaternion has norm {np.linalg.norm(q):.6g}, not 1")
     T = wire.pose_from_pb(p)
+    if len(prior.covariance.data) not in (0, 36):  # counted before anything walks them
+        raise InvalidInput(f"prior covariance must have 36 values (6x6 row-major) or none, "
+                           f"got {len(prior.covariance.data)}")
     try:
         cov = wire.covariance_from_pb(prior.covariance, "prior covariance")
     except wire.BadCovariance as exc:
@@ -107,7 +110,14 @@ def decode_crop(request: pb.EstimateRequest, camera: PinholeCamera | None,
         keypoints = keypoints - np.array([0.0, c.x, c.y])
     return cropped, keypoints
 
-MAX_JPEG_SEGMENTS = 256  # before the frame header; real files have a dozen or two
+MAX_JPEG_SEGMENTS = 256  # before the first scan; real files have a dozen or two
+MAX_JPEG_FILL_BYTES = 4096  # fill bytes (0xFF) before the first scan, which Pillow walks one by one in Python
+# Scans (SOS markers) a decoded JPEG may hold. Each scan of a progressive JPEG is one more pass of libjpeg over
+# every block of the frame, whatever few bytes it has: one AC scan repeated 200,000 times under a 640x480 header
+# (6.8 MB) cost 21 s of CPU. Encoders write 1 (baseline), 3 (non-interleaved) or about 10 (libjpeg's and
+# mozjpeg's progressive scripts); libjpeg-turbo's own guard is a scan limit (djpeg -maxscans, TJPARAM_SCANLIMIT),
+# which Pillow does not expose, so the scans are counted before the decode (docs/operations.md: the bound).
+MAX_JPEG_SCANS = 100
 
 
 def _fill_end(data: bytes, i: int) -> int:
@@ -122,26 +132,60 @@ def _fill_end(data: bytes, i: int) -> int:
     return len(data)
 
 
-def _jpeg_size(data: bytes) -> tuple[int, int] | None:
-    """(width, height) from a JPEG's frame header (SOFn segment), None when it has none among its first
-    MAX_JPEG_SEGMENTS segments. Runs of fill bytes are skipped at once: this runs on the event loop,
-    and a hostile header must not make it walk megabytes byte by byte."""
+def _jpeg_segments(data: bytes):
+    """(marker, index, next index) of the JPEG's segments after its SOI, in order, up to MAX_JPEG_SEGMENTS of them;
+    a run of fill bytes is one item (marker 0xFF), skipped at once. Ends early at a byte that is not a marker (junk)
+    or at the end of the data. This runs on the event loop: a hostile header must not make it walk megabytes byte
+    by byte."""
     if data[:2] != b"\xff\xd8":
-        return None
+        return
     i = 2
     for _ in range(MAX_JPEG_SEGMENTS):
-        if i + 9 > len(data) or data[i] != 0xFF:
-            return None
+        if i + 4 > len(data) or data[i] != 0xFF:
+            return
         marker = data[i + 1]
         if marker == 0xFF:  # fill bytes: go to the last 0xFF of the run, before its marker
-            i = _fill_end(data, i) - 1
+            end = _fill_end(data, i) - 1
         elif marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length field
-            i += 2
-        elif 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # SOFn: precision, height, width
-            return int.from_bytes(data[i + 7:i + 9], "big"), int.from_bytes(data[i + 5:i + 7], "big")
+            end = i + 2
         else:
-            i += 2 + int.from_bytes(data[i + 2:i + 4], "big")
+            end = i + 2 + int.from_bytes(data[i + 2:i + 4], "big")
+        yield marker, i, end
+        i = end
+
+
+def _jpeg_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a JPEG's frame header (SOFn segment), None when it has none among its first
+    MAX_JPEG_SEGMENTS segments."""
+    for marker, i, _ in _jpeg_segments(data):
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # SOFn: precision, height, width
+            if i + 9 > len(data):
+                return None
+            return int.from_bytes(data[i + 7:i + 9], "big"), int.from_bytes(data[i + 5:i + 7], "big")
+        if marker == 0xDA:
+            return None
     return None
+
+
+def _check_jpeg_cost(data: bytes) -> None:
+    """Refuse a JPEG whose decode would cost more than its pixels do: more than MAX_JPEG_SCANS scans (counted as
+    SOS markers anywhere in the data, an upper bound: inside the entropy-coded data a 0xFF byte is always followed
+    by 0x00 or a marker), or a header that Pillow would walk one byte at a time in Python (junk, more than
+    MAX_JPEG_FILL_BYTES fill bytes, or more than MAX_JPEG_SEGMENTS segments before the first scan)."""
+    scans = data.count(b"\xff\xda")
+    if scans > MAX_JPEG_SCANS:
+        raise InvalidInput(f"JPEG has {scans} scans; at most {MAX_JPEG_SCANS} are accepted (each scan is one more "
+                           f"pass of the decoder over the whole frame)")
+    fill = 0
+    for marker, i, end in _jpeg_segments(data):
+        if marker == 0xDA:
+            return
+        if marker == 0xFF:
+            fill += end - i
+            if fill > MAX_JPEG_FILL_BYTES:
+                break
+    raise InvalidInput(f"JPEG header does not reach its first scan within {MAX_JPEG_SEGMENTS} segments and "
+                       f"{MAX_JPEG_FILL_BYTES} fill bytes, without junk between them")
 
 
 def _png_size(data: bytes) -> tuple[int, int] | None:
@@ -221,6 +265,8 @@ def decode_image(image: pb.Image, camera: PinholeCamera | None) -> np.ndarray | 
         return None
     _check(image, data, camera)
     if image.encoding in _FORMATS:
+        if image.encoding == pb.Image.JPEG:
+            _check_jpeg_cost(data)
         rgb = _decode_rgb(data, _FORMATS[image.encoding])
         if rgb.shape[:2] != (image.height, image.width):
             raise InvalidInput(f"image declared {image.width}x{image.height} but is {rgb.shape[1]}x{rgb.shape[0]}")

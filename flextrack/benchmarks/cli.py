@@ -17,6 +17,7 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "region": ("flextrack.benchmarks.region_bench", "region estimator: CPU ms a frame, and the service's frames/s with it"),
     "service": ("flextrack.benchmarks.service_bench", "Track stream and unary Estimate: gt_oracle vs a no-op echo servicer"),
     "sdk-memory": ("flextrack.benchmarks.sdk_memory_bench", "the client SDK's RSS and buffer sizes over a long live run"),
+    "jpeg-bound": ("flextrack.benchmarks.jpeg_bound_bench", "worst JPEG decode the service's scan and header checks let in"),
 }
 
 
