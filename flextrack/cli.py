@@ -27,6 +27,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+# The extra (pyproject.toml) that brings a missing module; the rest come with `server`.
+EXTRAS = {"torch": "train", "onnx": "train", "pyrender": "sim", "matplotlib": "sim", "tqdm": "sim"}
+
+
+def extra_for(missing_module: str | None) -> str:
+    return EXTRAS.get((missing_module or "").split(".")[0], "server")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="flextrack",
@@ -63,8 +71,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:
-        print(f"flextrack {name}: cannot load {module_name} ({exc}); install the extra it needs, "
-              f"e.g. pip install -e '.[dev]' (make setup)", file=sys.stderr)
+        print(f"flextrack {name}: cannot load {module_name} ({exc}); install the extra it needs: "
+              f"pip install 'flextrack[{extra_for(exc.name)}]' (in a checkout: make setup)", file=sys.stderr)
         return 2
     cmd_parser = command_parser(name, module)
     return int(module.run(cmd_parser.parse_args(rest)) or 0)

@@ -155,8 +155,9 @@ def test_serve_negative_port_is_refused(capsys):
     (["evaluate", "prior", "--bop", "/nonexistent", "--obj-id", "6"], "no BOP split folder"),
     (["bench", "tracker", "--fps", "0"], "must be > 0"),
     (["report", "--check", "--root", "/nonexistent"], "holds no docs/results/"),
-    (["simulate", "--fps", "0", "--out", "/nonexistent/x"], "--fps, --imu-rate and --duration must be > 0"),
-    (["loadtest", "--target", "127.0.0.1:1", "--clients", "0", "--out", "/nonexistent/x"], "--clients must be >= 1"),
+    (["simulate", "--fps", "0", "--out", "/nonexistent/x"], "--fps must be a number in (0, 1000]"),
+    (["loadtest", "--target", "127.0.0.1:1", "--clients", "0", "--out", "/nonexistent/x"],
+     "--clients must be a number in [1, 100000]"),
 ])
 def test_bad_values_are_one_line_and_exit_2(argv, says, capsys):
     assert main(argv) == 2
@@ -199,7 +200,7 @@ def test_experiment_euroc_bad_set_is_one_line(tmp_path, capsys):
 
 def test_track_bad_fps_and_missing_config(seq, tmp_path, capsys):
     assert main(["track", str(seq.root), "--fps", "0", "--out", str(tmp_path / "o")]) == 2
-    assert "--fps must be > 0" in one_line(capsys)
+    assert "--fps must be a number in (0, 1000], got 0" in one_line(capsys)
     assert main(["track", str(seq.root), "--config", str(tmp_path / "nope.toml"), "--out", str(tmp_path / "o")]) == 2
     assert "no such file" in one_line(capsys)
 
@@ -209,3 +210,58 @@ def test_serve_config_that_is_not_toml(tmp_path, capsys):
     bad.write_text("not [valid toml\n")
     assert main(["serve", "--config", str(bad), "--port", "0"]) == 2
     assert "not valid TOML" in one_line(capsys)
+
+
+@pytest.mark.parametrize("argv", [
+    ["simulate", "--duration", "inf"], ["simulate", "--imu-jitter", "-1"], ["simulate", "--fps", "100000"],
+    ["track", "SEQ", "--slowdown", "inf"], ["track", "SEQ", "--backend-ms", "-1000"],
+    ["experiment", "table2", "--duration", "inf"], ["experiment", "euroc", "--fps", "inf"],
+    ["experiment", "euroc", "--fps", "0"], ["loadtest", "--target", "127.0.0.1:1", "--payload-kb", "-5"],
+    ["convert-euroc", "--fps", "nan"], ["evaluate", "nees", "--pnp-noise-px", "inf"],
+])
+def test_bad_numbers_get_one_line_and_exit_2(argv, seq, tmp_path, capsys):
+    """Issue 31 item 7: inf, nan, negative sizes and rates no machine keeps up with, refused before any work."""
+    argv = [str(seq.root) if a == "SEQ" else a for a in argv] + ["--out", str(tmp_path / "o")]
+    assert main(argv) == 2
+    option = next(a for a in argv if a.startswith("--") and a != "--target")
+    assert f"{option} must be a number in " in one_line(capsys)
+    assert not (tmp_path / "o").exists()
+
+
+def test_evaluate_nees_out_naming_a_file_is_refused(tmp_path, capsys):
+    (tmp_path / "f").write_text("")
+    assert main(["evaluate", "nees", "--out", str(tmp_path / "f")]) == 2
+    assert "is an existing file" in one_line(capsys)
+
+
+def test_evaluate_nees_says_why_it_exits_1_and_help_says_what_each_exit_means(tmp_path, capsys):
+    rc = main(["evaluate", "nees", "--estimators", "pnp", "--pnp-answers", "60", "--pnp-tune-answers", "20",
+               "--pnp-noise-px", "3", "--out", str(tmp_path)])
+    err = one_line(capsys)
+    assert rc == 1 and err.startswith("flextrack evaluate nees: not calibrated: pnp mean NEES ")
+    assert "(errors larger than its covariance says)" in err
+    with pytest.raises(SystemExit):
+        main(["evaluate", "nees", "--help"])
+    assert "exit status: 0 when" in capsys.readouterr().out.replace("\n", " ")
+
+
+def test_convert_euroc_default_input_works_from_outside_the_checkout(tmp_path, monkeypatch, capsys):
+    from flextrack.experiments.euroc import DEFAULT_DATA
+
+    if not DEFAULT_DATA.is_dir():
+        pytest.skip(f"no shared EuRoC data at {DEFAULT_DATA}")
+    monkeypatch.chdir(tmp_path)
+    assert main(["convert-euroc", "--no-plots", "--out", "seq"]) == 0
+    assert (tmp_path / "seq" / "rig.yaml").is_file() and "wrote seq" in capsys.readouterr().out
+
+
+def test_convert_euroc_missing_folder_is_reported_as_missing(tmp_path, capsys):
+    assert main(["convert-euroc", "--euroc", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 2
+    assert f"--euroc {tmp_path / 'nope'}: no such folder" in one_line(capsys)
+
+
+def test_a_missing_extra_is_named_as_a_wheel_user_installs_it():
+    from flextrack.cli import extra_for
+
+    assert [extra_for(m) for m in ("pyrender", "matplotlib.pyplot", "torch", "onnxruntime", None)] == \
+        ["sim", "sim", "train", "server", "server"]

@@ -191,6 +191,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--pvnet-seed", type=int, default=20261122, help="held-out frames (pvnet-eval's default)")
     g.add_argument("--jpeg", type=int, default=90, help="JPEG quality the frames are sent at (0: as rendered)")
     g.add_argument("--model", type=Path, help="PVNet ONNX (default: the shipped model)")
+    parser.epilog = ("exit status: 0 when every estimator's held-out mean NEES (answers under --max-2d-px) is inside "
+                     "its 95 % interval; 1 when one is not (each named on stderr: a covariance that claims too much "
+                     "or too little); 2 for a bad argument")
+
+
+def argument_problem(args) -> str | None:
+    """One line for an argument that cannot work, before any work is done."""
+    from flextrack.runners.cli_checks import numbers_problem, out_folder_problem
+
+    many = 10_000_000
+    return numbers_problem([
+        ("--oracle-answers", args.oracle_answers, 1, many, True), ("--pnp-answers", args.pnp_answers, 1, many, True),
+        ("--pnp-tune-answers", args.pnp_tune_answers, 1, many, True),
+        ("--pvnet-frames", args.pvnet_frames, 1, many, True), ("--max-2d-px", args.max_2d_px, 0, 1e6),
+        ("--noise-t-m", args.noise_t_m, 0, 10, True), ("--noise-r-deg", args.noise_r_deg, 0, 180, True),
+        ("--pnp-noise-px", args.pnp_noise_px, 0, 1000, True), ("--pnp-outliers", args.pnp_outliers, 0, 1, True),
+        ("--jpeg", args.jpeg, 0, 100, True)]) or out_folder_problem(args.out)
 
 
 def _entry(name: str, tune: list[dict], held: list[dict], stored: float, max_px: float, **extra) -> dict:
@@ -234,6 +251,10 @@ def run(args) -> int:
     import sys
     import time
 
+    problem = argument_problem(args)
+    if problem:
+        print(f"flextrack evaluate nees: {problem}", file=sys.stderr)
+        return 2
     started = time.perf_counter()
     options = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items() if not k.startswith("_")}
     result = {"provenance": provenance(command="flextrack evaluate nees", **options), "estimators": []}
@@ -254,7 +275,22 @@ def run(args) -> int:
     print(table(entries, args.max_2d_px))
     print(f"wrote {path} and answers.csv ({prov['wall_s']:.0f} s; commit {prov['commit'] or '?'}"
           f"{' dirty' if prov['dirty'] else ''})")
-    return 0 if all(e["heldout_below_max_2d"]["passed"] for e in entries) else 1
+    failed = [e for e in entries if not e["heldout_below_max_2d"]["passed"]]
+    if failed:
+        print("flextrack evaluate nees: not calibrated: " + "; ".join(miscalibration(e) for e in failed),
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+def miscalibration(entry: dict) -> str:
+    """Why an estimator failed, in a clause: its held-out mean NEES against the interval, and which way."""
+    s = entry["heldout_below_max_2d"]
+    if not s["n"]:
+        return f"{entry['estimator']} has no held-out answer under --max-2d-px"
+    lo, hi = s["interval"]
+    way = "errors larger than its covariance says" if s["mean"] > hi else "covariance larger than its errors"
+    return f"{entry['estimator']} mean NEES {s['mean']:.2f} outside [{lo:.2f}, {hi:.2f}] ({way})"
 
 
 def _gt_oracle(args) -> dict:

@@ -84,7 +84,7 @@ def run(args) -> int:
         table2_vision,
         timing,
     )
-    from flextrack.runners.cli_checks import out_folder_problem
+    from flextrack.runners.cli_checks import numbers_problem, out_folder_problem
     from flextrack.runners.scoring import NothingScored
 
     problem = out_folder_problem(args.out)
@@ -103,6 +103,9 @@ def run(args) -> int:
         problem = "--preset and --set apply to euroc (table2, ablation and filter run their own variants)"
     if args.seeds < 1 or args.seed < 0:
         problem = f"--seeds must be at least 1 and --seed at least 0, got {args.seeds} and {args.seed}"
+    problem = numbers_problem([("--duration", args.duration, 0, 3600), ("--backend-ms", args.backend_ms, 0, 60_000, True),
+                               ("--object-distance", args.object_distance, 0, 100),
+                               *(("--fps", f, 0, 1000) for f in args.fps or ())]) or problem
     if problem:
         print(f"flextrack experiment {args.experiment}: {problem}", file=sys.stderr)
         return 2

@@ -132,11 +132,14 @@ def run(args: argparse.Namespace) -> int:
             problem = cli_checks.address_problem(target, "--target")
             if problem:
                 raise ValueError(problem)
-        if args.clients < 1 or not (args.fps > 0 and args.duration > 0 and args.warmup >= 0):
-            raise ValueError(f"--clients must be >= 1, --fps and --duration > 0 and --warmup >= 0, got {args.clients}, "
-                             f"{args.fps:g}, {args.duration:g} and {args.warmup:g}")
-        if args.answers < 0:
-            raise ValueError(f"--answers must be >= 0, got {args.answers}")
+        problem = cli_checks.numbers_problem([
+            ("--clients", args.clients, 1, 100_000, True), ("--fps", args.fps, 0, 1000),
+            ("--payload-kb", args.payload_kb, 0, 15 * 1024, True), ("--duration", args.duration, 0, 86_400),
+            ("--warmup", args.warmup, 0, 3600, True), ("--answers", args.answers, 0, 1_000_000, True),
+            ("--channels", args.channels, 0, 100_000, True), ("--p99-bound-ms", args.p99_bound_ms, 0, 3_600_000),
+            ("--max-error-rate", args.max_error_rate, 0, 1, True), ("--max-clients", args.max_clients, 1, 100_000, True)])
+        if problem:
+            raise ValueError(problem)
         spec, work = _spec(args), _workload(args)
         problem = cli_checks.out_folder_problem(args.out)
         if problem:

@@ -1,6 +1,6 @@
 """Checks a command makes on its arguments before any work, each giving one line that says what is wrong and
 what to do (None when all is well): an output folder that is a file, a server address that is malformed or where
-nothing listens."""
+nothing listens, a number out of its range."""
 
 from __future__ import annotations
 
@@ -40,4 +40,27 @@ def server_problem(address: str, timeout_s: float = 3.0, option: str = "--server
         return str(exc)
     finally:
         channel.close()
+    return None
+
+
+def number_problem(option: str, value: float | None, low: float, high: float, *, low_closed: bool = False) -> str | None:
+    """A number outside (low, high] (or [low, high] with `low_closed`): inf, nan, a negative size, a rate no
+    machine keeps up with. None (the option left out) passes."""
+    import math
+
+    if value is None:
+        return None
+    inside = math.isfinite(value) and (low <= value if low_closed else low < value) and value <= high
+    if inside:
+        return None
+    bracket = "[" if low_closed else "("
+    return f"{option} must be a number in {bracket}{low:g}, {high:g}], got {value:g}"
+
+
+def numbers_problem(checks) -> str | None:
+    """The first problem of `number_problem(*check)` over (option, value, low, high[, low_closed]) tuples."""
+    for check in checks:
+        problem = number_problem(*check[:4], low_closed=len(check) > 4 and check[4])
+        if problem:
+            return problem
     return None

@@ -119,10 +119,11 @@ def argument_problem(args) -> str | None:
     """One line for an argument that cannot work, before any work is done."""
     if args.speed != 1.0 and not args.live:
         return "--speed plays a --live run faster; add --live, or drop --speed (a replay runs in virtual time)"
-    if not args.speed > 0:
-        return f"--speed must be > 0, got {args.speed}"
-    if args.fps is not None and not args.fps > 0:
-        return f"--fps must be > 0, got {args.fps:g}"
+    problem = cli_checks.numbers_problem([
+        ("--speed", args.speed, 0, 1000), ("--fps", args.fps, 0, 1000), ("--slowdown", args.slowdown, 0, 100),
+        ("--backend-ms", args.backend_ms, 0, 60_000, True), ("--progress-every", args.progress_every, 0, 3600)])
+    if problem:
+        return problem
     if args.config is not None and not args.config.is_file():
         return f"--config {args.config}: no such file (the default config is used when --config is left out)"
     if args.server and args.config:

@@ -10,6 +10,9 @@ from pathlib import Path
 from flextrack.simulator.imu import PROFILES
 from flextrack.simulator.trajectory import LEVELS, MOTIONS
 
+# What a sequence folder can hold and a machine can write: an hour, 1000 FPS (the paper: 30-240), 10 kHz IMU.
+MAX_DURATION_S, MAX_FPS, MAX_IMU_RATE = 3600.0, 1000.0, 10_000.0
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--motion", choices=MOTIONS, default="translational",
@@ -23,7 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--object-id", default=None, help="object id in the sequence (default: 'default' or the file stem)")
     parser.add_argument("--imu-profile", choices=sorted(PROFILES), default="pixel2",
                         help="IMU noise and biases: a Pixel 2, EuRoC's ADIS16448, or none (default: %(default)s)")
-    parser.add_argument("--imu-jitter", type=float, default=0.0, help="std of the IMU sampling instants, s")
+    parser.add_argument("--imu-jitter", type=float, default=0.0, help="std of the IMU sampling instants, s (at most half the IMU period)")
     parser.add_argument("--still", type=float, default=2.0, help="seconds held still at the start (>= 1)")
     parser.add_argument("--moving-start", action="store_true", help="the first frame comes 1 s after the motion "
                         "reached full speed: a tracker starts on a moving device")
@@ -35,13 +38,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from flextrack.runners.cli_checks import out_folder_problem
+    from flextrack.runners.cli_checks import numbers_problem, out_folder_problem
     from flextrack.simulator.generate import generate_sequence
     from flextrack.simulator.plots import plot_sequence
 
-    problem = out_folder_problem(args.out)
-    if not (args.fps > 0 and args.imu_rate > 0 and args.duration > 0):
-        problem = f"--fps, --imu-rate and --duration must be > 0, got {args.fps:g}, {args.imu_rate:g} and {args.duration:g}"
+    problem = numbers_problem([
+        ("--duration", args.duration, 0, MAX_DURATION_S), ("--fps", args.fps, 0, MAX_FPS),
+        ("--imu-rate", args.imu_rate, 0, MAX_IMU_RATE), ("--still", args.still, 1, MAX_DURATION_S, True),
+        ("--imu-jitter", args.imu_jitter, 0, 0.5 / args.imu_rate if args.imu_rate > 0 else 0, True),
+        ("--imu-time-offset", args.imu_time_offset, -1, 1, True)]) or out_folder_problem(args.out)
     if problem:
         print(f"flextrack simulate: {problem}", file=sys.stderr)
         return 2

@@ -8,8 +8,10 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--euroc", type=Path, default=Path("../shared/data/euroc_v1_02_medium"),
-                        help="EuRoC folder (imu0.csv, groundtruth.csv, cam0/imu0 sensor yaml, or mav0/)")
+    parser.add_argument("--euroc", type=Path, default=None,
+                        help="EuRoC folder (imu0.csv, groundtruth.csv, cam0/imu0 sensor yaml, or mav0/) (default: "
+                             "shared/data/euroc_v1_02_medium beside the checkout, from any working folder, as "
+                             "`experiment euroc` finds it)")
     parser.add_argument("--out", type=Path, required=True, help="sequence folder to write")
     parser.add_argument("--fps", type=float, default=None,
                         help="frame rate (default: cam0's rate_hz from its sensor yaml, e.g. 20 for EuRoC)")
@@ -43,17 +45,24 @@ def xyz(text: str) -> tuple[float, float, float]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from flextrack.experiments.euroc import DEFAULT_DATA  # one home for the default, resolved from this file
     from flextrack.formats.sequence import load
-    from flextrack.runners.cli_checks import out_folder_problem
+    from flextrack.runners.cli_checks import numbers_problem, out_folder_problem
     from flextrack.simulator.euroc_convert import convert_euroc
     from flextrack.simulator.plots import plot_sequence
 
-    problem = out_folder_problem(args.out)
+    euroc = args.euroc or DEFAULT_DATA
+    problem = numbers_problem([("--fps", args.fps, 0, 1000), ("--max-distance", args.max_distance, 0, 100),
+                               ("--object-scale", args.object_scale, 0, 1000),
+                               ("--object-distance", args.object_distance, 0, 100)]) or out_folder_problem(args.out)
+    if not euroc.is_dir():
+        problem = problem or (f"--euroc {euroc}: no such folder" + ("" if args.euroc else " (the default: the "
+                              "shared data beside the checkout)") + "; give the folder of a EuRoC recording")
     if problem:
         print(f"flextrack convert-euroc: {problem}", file=sys.stderr)
         return 2
     try:
-        root = convert_euroc(args.euroc, args.out, fps=args.fps,
+        root = convert_euroc(euroc, args.out, fps=args.fps,
                              object_path=None if args.object == "default" else args.object, object_id=args.object_id,
                              max_distance_m=args.max_distance, object_scale=args.object_scale,
                              object_position=args.object_position, object_distance_m=args.object_distance)
