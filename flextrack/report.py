@@ -466,6 +466,19 @@ def render_timing(folder: Path) -> str:
     return "\n".join(lines + ["", provenance_line(prov) + f" Files: `{RESULTS_DIR.as_posix()}/{folder.name}/`."])
 
 
+@section("demo")
+def render_demo(folder: Path) -> str:
+    """`flextrack demo`: its table as it printed it; the replay rows are checked against a fresh replay by a test."""
+    from flextrack.runners.results import Summary, format_table
+
+    data = json.loads((folder / "demo.json").read_text())
+    prov = data["provenance"]
+    table = format_table([(r["run"], Summary(**r["summary"])) for r in data["runs"]])
+    return "\n".join(["```", table, "```", "", provenance_line(prov) + f" Files: `{RESULTS_DIR.as_posix()}/"
+                      f"{folder.name}/`. The live row varies with the machine's timing; the replay rows are the same "
+                      "on every run (virtual time; `tests/test_demo_table.py` replays them and compares to the digit)."])
+
+
 # --- the command -----------------------------------------------------------------------------------
 
 
