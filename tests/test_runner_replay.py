@@ -140,3 +140,26 @@ def test_the_filter_s_error_dynamics_change_nothing_and_give_the_nees_interval(p
     assert with_model.nees_interval_from == "model" and with_model.nees_mean == from_series.nees_mean
     assert with_model.nees_lo < 6 < with_model.nees_hi
     assert len(kept.error_dynamics.anchors) > 50  # one per applied answer
+
+
+def test_a_replay_with_frames_sends_crops_once_it_tracks_and_records_their_real_size(phone_seq):
+    """The first request carries the whole frame, the ones after the crop around the prior; the record keeps each
+    request's size (a stand-in JPEG of the crop's size: the oracle ignores pixels)."""
+    from flextrack.runners.payload import stand_in_jpeg
+
+    crops = []
+
+    def frame_jpeg(frame_id, crop):
+        crops.append(crop)
+        w, h = (crop.width, crop.height) if crop is not None else (phone_seq.camera.width, phone_seq.camera.height)
+        return stand_in_jpeg(w, h, n_bytes=w * h // 4)
+
+    registry = oracle_registry([phone_seq.root], noise_seed=5)
+    network = NetworkOptions(seed=5, fixed_payload_bytes=None, extra_max_ms=0.0, propagation_ms=0.0)
+    options = ReplayOptions(network=network, estimator="noisy")
+    record = replay(phone_seq, InProcessBackend(registry, network), session.model_vertices(phone_seq),
+                    TrackerOptions(), options, frame_jpeg=frame_jpeg)
+    assert crops[0] is None and sum(c is not None for c in crops) > 0.9 * len(crops)
+    assert len(record.request_bytes) == record.requests == len(crops)
+    whole, cut = record.request_bytes[0], record.request_bytes[-1]
+    assert cut < 0.5 * whole and record.summarize().median_request_kb * 1024 < 0.5 * whole

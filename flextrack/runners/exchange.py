@@ -36,13 +36,15 @@ def tracker_for(seq: Sequence, vertices_O: np.ndarray, options: TrackerOptions |
 
 
 def frame_request(seq: Sequence, tracker, frame_id: int, capture_time_ns: int, image: bytes, *, session_id: str,
-                  estimator: str, client_state: bytes) -> pb.EstimateRequest:
-    """The request for one frame, with the tracker's prior at the capture time once it has one."""
+                  estimator: str, client_state: bytes, crop: pb.Crop | None = None) -> pb.EstimateRequest:
+    """The request for one frame (`image`: its JPEG, or the JPEG of `crop`'s rectangle of it), with the tracker's
+    prior at the capture time once it has one."""
+    width, height = (crop.width, crop.height) if crop is not None else (seq.camera.width, seq.camera.height)
     return make_request(
         frame_id=frame_id, capture_time_ns=capture_time_ns, session_id=session_id, estimator=estimator,
-        object_id=seq.object_id, sequence=seq.name, image=image, width=seq.camera.width,
-        height=seq.camera.height, intrinsics=wire.intrinsics_to_pb(seq.camera), client_state=client_state,
-        prior=prior_of(tracker, capture_time_ns))
+        object_id=seq.object_id, sequence=seq.name, image=image, width=width, height=height,
+        intrinsics=wire.intrinsics_to_pb(seq.camera), client_state=client_state,
+        prior=prior_of(tracker, capture_time_ns), crop=crop)
 
 
 def apply_answer(tracker, request_id: int, response: pb.EstimateResponse, record: TrackRecord) -> None:

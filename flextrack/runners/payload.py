@@ -69,8 +69,12 @@ class RenderedJpegs:
         self._frames = SequenceFrames(seq)
         self._quality = int(quality)
 
-    def __call__(self, frame_id: int) -> bytes:
-        return frame_jpeg(self._frames.frame(int(frame_id)).rgb, self._quality)
+    def __call__(self, frame_id: int, crop=None) -> bytes:
+        """The frame's JPEG, or that of `crop`'s rectangle of it (a `Crop`, client_sdk.crop)."""
+        rgb = self._frames.frame(int(frame_id)).rgb
+        if crop is not None:
+            rgb = rgb[crop.y:crop.y + crop.height, crop.x:crop.x + crop.width]
+        return frame_jpeg(rgb, self._quality)
 
     def close(self) -> None:
         self._frames.close()

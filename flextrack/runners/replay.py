@@ -22,9 +22,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from client_sdk import TrackerOptions
+from client_sdk.crop import CropOptions, request_crop
 from client_sdk.network_model import NetworkOptions
 from client_sdk.slowdown import PIXEL2_FACTOR, FrontendCosts, Slowdown
 from flextrack.formats.sequence import Sequence
+from flextrack.geometry.camera import bbox_corners
 from flextrack.runners.exchange import apply_answer, finish, frame_request, tracker_for
 from flextrack.runners.live import Progress
 from flextrack.runners.payload import stand_in_jpeg
@@ -42,6 +44,7 @@ class ReplayOptions:
     estimator: str = "gt"  # registry name on the server
     session_id: str = "replay"
     record_error_dynamics: bool = True  # the filter's, for the NEES interval (off: timing the tracker alone)
+    crop: CropOptions = field(default_factory=CropOptions)  # with rendered frames: what part of a frame to send
 
 
 def replay(seq: Sequence, backend, vertices_O: np.ndarray, tracker_options: TrackerOptions | None = None,
@@ -51,8 +54,9 @@ def replay(seq: Sequence, backend, vertices_O: np.ndarray, tracker_options: Trac
     """Track `seq` with `backend` (see flextrack.runners.backends) and record every frame against ground truth.
 
     `wrap` may put a proxy around the tracker (the timing experiment measures its calls that way);
-    `frame_jpeg(frame_id)` gives the image a request carries (default: the 90 kB stand-in); `progress` is
-    called after every frame (it decides itself how often to show anything).
+    `frame_jpeg(frame_id, crop)` gives the image a request carries, the frame or the crop `options.crop` chose
+    (default: the 90 kB stand-in, always whole); `progress` is called after every frame (it decides itself how
+    often to show anything).
     """
     tracker = tracker_for(seq, vertices_O, tracker_options, options.record_error_dynamics)
     if wrap is not None:
@@ -60,6 +64,7 @@ def replay(seq: Sequence, backend, vertices_O: np.ndarray, tracker_options: Trac
     slowdown = Slowdown(options.slowdown, options.costs)
     record = TrackRecord(seq.camera, vertices_O)
     image = stand_in_jpeg(seq.camera.width, seq.camera.height)
+    corners_O = bbox_corners(vertices_O)
     compute_ns = round(options.backend_compute_ms * 1e6)
 
     events: list[tuple] = []  # (t_ns, kind, n, payload)
@@ -82,11 +87,13 @@ def replay(seq: Sequence, backend, vertices_O: np.ndarray, tracker_options: Trac
             if progress is not None:
                 progress(Progress((t_ns - t_first) * 1e-9, (t_last - t_first) * 1e-9, record, result.status.name, True))
             if result.request is not None:
+                crop = None if frame_jpeg is None else request_crop(tracker, result.request, corners_O, options.crop)
                 request = frame_request(seq, tracker, payload, result.request.frame_t_ns,
-                                        image if frame_jpeg is None else frame_jpeg(payload),
+                                        image if frame_jpeg is None else frame_jpeg(payload, crop),
                                         session_id=options.session_id, estimator=options.estimator,
-                                        client_state=tracker.state_bytes())
+                                        client_state=tracker.state_bytes(), crop=crop)
                 record.requests += 1
+                record.request_bytes.append(request.ByteSize())
                 response, delays = backend.call(request)
                 arrive = (t_ns + slowdown.virtual_ns("pim") + delays.uplink_ns + compute_ns + delays.downlink_ns
                           + slowdown.virtual_ns("prm"))

@@ -138,6 +138,7 @@ class Summary:
     worst_fine_px: float = math.nan  # the largest 2D error of a frame called FINE
     status_counts: dict[str, int] = field(default_factory=dict)
     requests: int = 0
+    median_request_kb: float = math.nan  # the requests' serialized size, median, kB of 1024 bytes
     responses: int = 0
     failures: int = 0
     bad_covariances: int = 0  # answers whose covariance was refused (the tracker's default used)
@@ -150,6 +151,7 @@ class TrackRecord:
     vertices_O: np.ndarray  # (N, 3) m, the model's vertices (the 2D error uses `metric_points` of them)
     rows: RowStore = field(default_factory=RowStore)  # RowStore(keep=N): older rows on disk (a live run)
     requests: int = 0
+    request_bytes: list[int] = field(default_factory=list)  # each request's serialized size, in the order sent
     responses: int = 0
     failures: int = 0
     first_refusal: str = ""  # the first answer that was not OK: "STATUS: the server's message"
@@ -250,6 +252,7 @@ class TrackRecord:
             nees_lo=interval.lo, nees_hi=interval.hi, nees_interval_from=source if len(nees) else "", fine_frames=counts.get("FINE", 0),
             worst_fine_px=max(fine) if fine else math.nan, status_counts=counts,
             requests=self.requests, responses=self.responses, failures=self.failures,
+            median_request_kb=float(np.median(self.request_bytes)) / 1024 if self.request_bytes else math.nan,
             bad_covariances=self.bad_covariances, time_offset_ms=self.time_offset_ms)
 
     def write(self, out_dir: str | Path, name: str = "track", provenance: dict | None = None) -> Path:
