@@ -16,6 +16,11 @@ Config (both parts declared above it, by name):
 A prior is usable when it is sent, puts the object in front of the camera and its covariance (when
 sent) is within the limits above. The answer's `stage_ms` says which part answered ("global" or
 "local", its time in ms).
+
+The chain knows every object of either part. An object only the local part knows (a mesh brought
+with `flextrack serve --objects`, which pvnet was never trained on) is answered with a usable prior
+only: without one the request is refused (InvalidInput, saying so), and a local answer that is not
+OK is returned as it is, there being no global part to fall back to.
 """
 
 from __future__ import annotations
@@ -24,7 +29,7 @@ import time
 
 import numpy as np
 
-from estimators.base import EstimateInput, EstimateOutput, Estimator, Status
+from estimators.base import EstimateInput, EstimateOutput, Estimator, InvalidInput, Status
 
 PARAMS = {"global", "local", "max_prior_deg", "max_prior_m", "fallback"}
 
@@ -71,9 +76,21 @@ class ChainedEstimator(Estimator):
         out.stage_ms = {**out.stage_ms, label: (time.perf_counter() - start) * 1e3}
         return out
 
+    @staticmethod
+    def _knows(part: Estimator, object_id: str) -> bool:
+        return not part.objects or object_id in part.objects  # no objects: a part that takes any (an oracle)
+
     def estimate(self, inp: EstimateInput) -> EstimateOutput:
-        if self.usable_prior(inp) and inp.object_id in ("", *self.local_estimator.objects):
+        object_id = self.resolve_object(inp.object_id) if self.objects else inp.object_id
+        usable = self.usable_prior(inp)
+        if usable and self._knows(self.local_estimator, object_id):
             out = self._run(self.local_estimator, "local", inp)
-            if out.status == Status.OK or not self.fallback:
+            if out.status == Status.OK or not self.fallback or not self._knows(self.global_estimator, object_id):
                 return out
+        if not self._knows(self.global_estimator, object_id):
+            why = "no prior was sent" if inp.prior_T_CO is None else "the prior is not usable (behind the camera, or " \
+                f"less certain than {np.degrees(self.max_prior_rad):g} deg / {self.max_prior_m:g} m per axis)"
+            raise InvalidInput(f"estimator '{self.name}' answers object '{object_id}' only from a prior: its global "
+                               f"part '{self.global_estimator.name}' does not know it, and {why}; send "
+                               "EstimateRequest.prior (a guide view gives a first one: flextrack guide-view)")
         return self._run(self.global_estimator, "global", inp)

@@ -2,13 +2,15 @@
 
 Keypoints are what PnP-style estimators match 2D detections against: the ones given in the
 config, or K points farthest-point-sampled from the model's vertices plus the box centre last
-(PVNet's choice), so keypoint id i is row i of `ObjectModel.keypoints`.
+(PVNet's choice), so keypoint id i is row i of `ObjectModel.keypoints`. A BOP model's diameter and
+symmetries come from the models_info.json beside it; `load_object_folder` reads a whole BOP models
+folder (what `flextrack serve --objects DIR` serves).
 """
 
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +33,9 @@ class ObjectModel:
     bbox_corners: np.ndarray  # (8, 3) m
     diameter_m: float
     faces: np.ndarray  # (F, 3) rows of `vertices`: the mesh, for estimators that draw the object
+    # (S, 4, 4) transforms in metres that leave the model's look unchanged, identity first (BOP's models_info.json,
+    # continuous ones discretised as bop_toolkit does): scoring takes a pose up to these (ADD-S, proj over them)
+    symmetries: np.ndarray = field(default_factory=lambda: np.eye(4)[None])
 
 
 def farthest_point_sample(points: np.ndarray, k: int) -> np.ndarray:
@@ -45,14 +50,25 @@ def farthest_point_sample(points: np.ndarray, k: int) -> np.ndarray:
     return points[chosen]
 
 
-def _diameter_m(model_path: Path, vertices: np.ndarray) -> float:
-    """BOP's diameter from models_info.json beside the model when it lists this object, else computed."""
+BOP_MODEL = re.compile(r"obj_(\d+)")
+
+
+def _models_info(model_path: Path) -> dict | None:
+    """This model's entry of the models_info.json beside it (BOP), or None."""
     info_path = model_path.parent / "models_info.json"
-    match = re.fullmatch(r"obj_(\d+)", model_path.stem)
-    if info_path.exists() and match:
-        info = bop.read_models_info(info_path).get(int(match.group(1)))
-        if info and "diameter" in info:
-            return float(info["diameter"]) / 1000.0
+    match = BOP_MODEL.fullmatch(model_path.stem)
+    if not (match and info_path.is_file()):
+        return None
+    try:
+        return bop.read_models_info(info_path).get(int(match.group(1)))
+    except (ValueError, OSError) as exc:
+        raise ValueError(f"{info_path}: not a readable models_info.json ({exc})") from None
+
+
+def _diameter_m(vertices: np.ndarray, info: dict | None) -> float:
+    """BOP's diameter from models_info.json when it lists this object, else computed."""
+    if info and "diameter" in info:
+        return float(info["diameter"]) / 1000.0
     hull = trimesh.PointCloud(vertices).convex_hull.vertices
     return float(np.max(np.linalg.norm(hull[:, None, :] - hull[None, :, :], axis=2)))
 
@@ -63,10 +79,14 @@ def load_object(object_id: str, model_path: str | Path, keypoints=None,
     model_path = Path(model_path)
     if not model_path.is_file():
         raise FileNotFoundError(f"object '{object_id}': model file {model_path} not found")
-    geometry = trimesh.load(model_path, process=False)
-    vertices = np.asarray(geometry.vertices, dtype=float) / 1000.0
-    if len(vertices) == 0:
-        raise ValueError(f"object '{object_id}': model {model_path} has no vertices")
+    try:
+        geometry = trimesh.load(model_path, process=False)
+        vertices = np.asarray(geometry.vertices, dtype=float) / 1000.0
+    except Exception as exc:  # noqa: BLE001 - a parser's own error on a damaged file: say which file, in one line
+        raise ValueError(f"object '{object_id}': model {model_path} does not load as a mesh "
+                         f"({type(exc).__name__}: {exc})") from None
+    if vertices.ndim != 2 or len(vertices) == 0 or not np.all(np.isfinite(vertices)):
+        raise ValueError(f"object '{object_id}': model {model_path} has no (finite) vertices")
     corners = bbox_corners(vertices)
     if keypoints is None:
         kp = np.vstack([farthest_point_sample(vertices, keypoint_count), corners.mean(axis=0)])
@@ -78,8 +98,32 @@ def load_object(object_id: str, model_path: str | Path, keypoints=None,
     if kp.ndim != 2 or kp.shape[1] != 3 or not np.all(np.isfinite(kp)):
         raise ValueError(f"object '{object_id}': keypoints must be a finite (K, 3) array in metres, got {kp.shape}")
     faces = np.asarray(getattr(geometry, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
-    return ObjectModel(object_id, model_path, vertices, kp.astype(float), corners, _diameter_m(model_path, vertices),
-                       faces)
+    info = _models_info(model_path)
+    return ObjectModel(object_id, model_path, vertices, kp.astype(float), corners, _diameter_m(vertices, info), faces,
+                       bop.symmetry_transforms(info or {}))
+
+
+def load_object_folder(folder: str | Path) -> list[ObjectModel]:
+    """Every BOP model of a folder (obj_NNNNNN.ply, in mm, with models_info.json beside them), each under its
+    file stem (obj_000006). ValueError, naming the folder or file, when there is none, models_info.json is
+    missing or does not list one, or a mesh does not load or has no faces (the estimators draw its outline)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ValueError(f"{folder}: not a folder (a BOP models folder: obj_NNNNNN.ply with models_info.json)")
+    paths = sorted(p for p in folder.glob("obj_*.ply") if BOP_MODEL.fullmatch(p.stem))
+    if not paths:
+        raise ValueError(f"{folder}: no BOP models (obj_NNNNNN.ply, in mm, with models_info.json beside them)")
+    if not (folder / "models_info.json").is_file():
+        raise ValueError(f"{folder}: no models_info.json beside the models (BOP's: diameters and symmetries, in mm)")
+    models = []
+    for path in paths:
+        if _models_info(path) is None:
+            raise ValueError(f"{path.name}: not listed in {folder / 'models_info.json'}")
+        model = load_object(path.stem, path)
+        if len(model.faces) == 0:
+            raise ValueError(f"object '{model.object_id}': model {path} has no faces (a point cloud, not a mesh)")
+        models.append(model)
+    return models
 
 
 class ObjectRegistry:
@@ -89,6 +133,11 @@ class ObjectRegistry:
         self._models = {m.object_id: m for m in models}
 
     def add(self, model: ObjectModel) -> None:
+        """ValueError when another model holds the id already: two meshes under one id would be ambiguous."""
+        known = self._models.get(model.object_id)
+        if known is not None and known.model_path != model.model_path:
+            raise ValueError(f"object '{model.object_id}' is registered twice: {known.model_path} and "
+                             f"{model.model_path}")
         self._models[model.object_id] = model
 
     def get(self, object_id: str) -> ObjectModel:

@@ -3,6 +3,11 @@
 A kind is a factory: a class with a `from_spec(spec)` classmethod, or any callable taking an
 `EstimatorSpec`. Third-party packages register kinds under the entry-point group; the kinds this
 repository ships are listed in BUILTIN_KINDS too, so a source checkout works before (re)installing.
+
+Objects can come from outside the config too (`flextrack serve --objects DIR`): each is added to the
+config's objects and to every estimator of a kind that works from the mesh alone (MESH_KINDS), and so
+to the composites built on those; `prepare` builds what those estimators would otherwise build on
+their first request.
 """
 
 from __future__ import annotations
@@ -14,7 +19,7 @@ from importlib.metadata import entry_points
 from pathlib import Path
 
 from estimators.base import Estimator, UnknownEstimator
-from estimators.objects import ObjectRegistry
+from estimators.objects import ObjectModel, ObjectRegistry
 from flextrack.assets import resolve
 
 ENTRY_POINT_GROUP = "flextrack.estimators"
@@ -25,6 +30,9 @@ BUILTIN_KINDS = {
     "region": "estimators.region.estimator:RegionEstimator",
     "chained": "estimators.chained:ChainedEstimator",
 }
+
+# Kinds that need nothing of an object but its mesh: every object brought with --objects is theirs too.
+MESH_KINDS = ("region",)
 
 
 @dataclass
@@ -116,9 +124,39 @@ class EstimatorRegistry:
     def ready(self) -> bool:
         return all(e.ready for e in self)
 
+    def prepare(self, object_ids: list[str] | None = None, processes: int | None = None) -> list[dict]:
+        """Build the region estimators' viewpoint models of `object_ids` (None: all their objects) into the
+        cache, several processes at once, and load them, so that no request waits ~20 s for one. One record
+        per (estimator, object): estimator, object, built (False: read from the cache), cache file."""
+        from estimators.region.estimator import RegionEstimator
+        from estimators.region.viewpoint_model import ViewpointJob, prepare_viewpoint_models
+
+        wanted = [(e, i) for e in self if isinstance(e, RegionEstimator)
+                  for i in e.objects if object_ids is None or i in object_ids]
+        jobs = []
+        for estimator, object_id in wanted:
+            model = self.objects.get(object_id)
+            jobs.append(ViewpointJob(model.vertices, model.faces, estimator.cache_dir, dict(estimator.view_options)))
+        built = prepare_viewpoint_models(jobs, processes)
+        for estimator, object_id in wanted:
+            estimator.viewpoint_model(object_id)  # from the cache now: kept in memory before the first request
+        return [{"estimator": e.name, "object": i, "built": b, "cache": str(job.path)}
+                for (e, i), b, job in zip(wanted, built, jobs, strict=True)]
+
     @classmethod
-    def from_dict(cls, doc: dict, base_dir: Path) -> EstimatorRegistry:
+    def from_dict(cls, doc: dict, base_dir: Path, object_models: list[ObjectModel] | tuple[ObjectModel, ...] = (),
+                  ) -> EstimatorRegistry:
+        """`object_models`: objects from outside the config (load_object_folder), for every MESH_KINDS estimator."""
         objects = ObjectRegistry.from_config(doc.get("objects", {}), base_dir)
+        for model in object_models:
+            if model.object_id in objects and objects.get(model.object_id).model_path != model.model_path:
+                raise ValueError(f"object '{model.object_id}' of {model.model_path.parent} is also an [objects] "
+                                 f"entry of the config ({objects.get(model.object_id).model_path})")
+            objects.add(model)
+        extra_ids = [m.object_id for m in object_models]
+        if extra_ids and not any(e.get("kind") in MESH_KINDS for e in doc.get("estimators", [])):
+            raise ValueError(f"the config declares no estimator of kind {' or '.join(MESH_KINDS)} to serve the "
+                             f"objects {extra_ids} with; add one ([[estimators]] kind = \"region\")")
         estimators = []
         for entry in doc.get("estimators", []):
             unknown = set(entry) - {"name", "kind", "objects", "model", "params"}
@@ -126,6 +164,8 @@ class EstimatorRegistry:
                 raise ValueError(f"[[estimators]] entry {entry.get('name', '?')}: needs `kind`, accepts name, objects, "
                                  f"model, params; unexpected {sorted(unknown)}")
             object_ids = list(entry.get("objects", []))
+            if object_ids and entry.get("kind") in MESH_KINDS:
+                object_ids += [i for i in extra_ids if i not in object_ids]
             for object_id in object_ids:
                 objects.get(object_id)  # fail at load time, naming the object
             spec = EstimatorSpec(
@@ -136,10 +176,12 @@ class EstimatorRegistry:
         return cls(estimators, doc.get("server", {}).get("default_estimator"), objects)
 
     @classmethod
-    def from_config(cls, path: str | Path) -> EstimatorRegistry:
+    def from_config(cls, path: str | Path, object_models: list[ObjectModel] | tuple[ObjectModel, ...] = (),
+                    ) -> EstimatorRegistry:
+        """The config's estimators; `object_models` (e.g. load_object_folder(DIR)) added as from_dict says."""
         path = Path(path)
         try:
             doc = tomllib.loads(path.read_text())
         except tomllib.TOMLDecodeError as exc:
             raise ValueError(f"{path}: not valid TOML: {exc}") from None
-        return cls.from_dict(doc, path.resolve().parent)
+        return cls.from_dict(doc, path.resolve().parent, object_models)

@@ -15,6 +15,8 @@ import sys
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("flextrack.runners.demo", "start a backend, track a simulated sequence live over gRPC, print errors, write plots"),
     "serve": ("service.cli", "run the PoseEstimation gRPC server"),
+    "prepare": ("service.prepare_cli", "build the region estimators' viewpoint models of your objects into the cache"),
+    "guide-view": ("flextrack.guide_view", "draw the outline a user lines an object up with, and the pose it stands for"),
     "simulate": ("flextrack.simulator.cli", "generate a synthetic sequence folder (trajectory, IMU, ground truth, frames)"),
     "convert-euroc": ("flextrack.simulator.euroc_cli", "turn a EuRoC IMU + ground-truth recording into a sequence folder"),
     "track": ("flextrack.runners.track_cli", "replay a sequence folder through the tracker and report its errors"),

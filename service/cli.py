@@ -5,7 +5,10 @@ from __future__ import annotations
 import argparse
 import asyncio
 import ipaddress
+import logging
+import os
 import sys
+import time
 from pathlib import Path
 
 from flextrack.assets import default_config_path
@@ -20,6 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "serving) then stops gracefully (exit 0); SIGINT stops without the drain.")
     parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG,
                         help="TOML file with [server], [objects.<id>] and [[estimators]] (docs/service.md)")
+    add_object_arguments(parser)
     parser.add_argument("--host", default="127.0.0.1",
                         help="address to listen on: loopback by default; any other address (0.0.0.0 for all) needs "
                              "TLS (--tls-cert) or tokens (--token-file), or --insecure-public")
@@ -47,6 +51,50 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     hardening.add_arguments(parser)
 
 
+def add_object_arguments(parser: argparse.ArgumentParser) -> None:
+    """--objects and --prepare-processes, shared by `flextrack serve` and `flextrack prepare`."""
+    parser.add_argument("--objects", type=Path, action="append", default=[], metavar="DIR",
+                        help="a BOP models folder (obj_NNNNNN.ply in mm, models_info.json beside them): every model is "
+                             "served under its file stem (obj_000006) by the config's region estimators and the "
+                             "chained ones built on them; their viewpoint models are built (or read from the cache "
+                             "`flextrack prepare` fills) before health says SERVING (repeatable; docs/own-data.md)")
+    parser.add_argument("--prepare-processes", type=int, default=default_processes(), metavar="N",
+                        help="processes that build the viewpoint models of --objects at once (default: %(default)s, "
+                             "the CPUs this process may run on)")
+
+
+def default_processes() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def load_object_folders(folders: list[Path]) -> list:
+    """The ObjectModels of every --objects folder, in order; ValueError (one line) on a bad folder or mesh."""
+    from estimators.objects import ObjectRegistry, load_object_folder
+
+    models, seen = [], ObjectRegistry()
+    for folder in folders:
+        for model in load_object_folder(folder):
+            if model.object_id not in seen:
+                models.append(model)
+            seen.add(model)  # the same id from two files: ValueError naming both
+    return models
+
+
+def load_registry(config: Path, object_models: list, processes: int | None = None):
+    """The config's estimators with the --objects models added, their viewpoint models built or read from the
+    cache (what `flextrack serve` does before it reports SERVING)."""
+    from estimators.registry import EstimatorRegistry
+
+    registry = EstimatorRegistry.from_config(config, object_models)
+    if object_models:
+        start = time.perf_counter()
+        records = registry.prepare([m.object_id for m in object_models], processes)
+        logging.getLogger("flextrack.service").info("viewpoint models ready", extra={
+            "objects": sorted({r["object"] for r in records}), "built": sum(r["built"] for r in records),
+            "from_cache": sum(not r["built"] for r in records), "seconds": round(time.perf_counter() - start, 2)})
+    return registry
+
+
 def check(address: str, timeout_s: float = 3.0) -> int:
     import grpc
     from grpc_health.v1 import health_pb2, health_pb2_grpc
@@ -64,7 +112,6 @@ def check(address: str, timeout_s: float = 3.0) -> int:
 def run(args: argparse.Namespace) -> int:
     if args.check:
         return check(args.check)
-    from estimators.registry import EstimatorRegistry
     from service import server
 
     server.configure_logging(args.log_level)
@@ -102,9 +149,18 @@ def run(args: argparse.Namespace) -> int:
     if not args.gil_switch_ms > 0:
         print(f"flextrack serve: --gil-switch-ms must be > 0, got {args.gil_switch_ms}", file=sys.stderr)
         return 2
+    if args.prepare_processes < 1:
+        print(f"flextrack serve: --prepare-processes must be >= 1, got {args.prepare_processes}", file=sys.stderr)
+        return 2
+    try:  # before listening: a bad folder or mesh is the command line's mistake, said in one line
+        object_models = load_object_folders(args.objects)
+    except ValueError as exc:
+        print(f"flextrack serve: --objects: {exc}", file=sys.stderr)
+        return 2
     sys.setswitchinterval(args.gil_switch_ms / 1e3)  # this process is the server's alone
     try:
-        return asyncio.run(server.serve(lambda: EstimatorRegistry.from_config(args.config), args.host, args.port,
+        return asyncio.run(server.serve(lambda: load_registry(args.config, object_models, args.prepare_processes),
+                                        args.host, args.port,
                                         args.max_message_mb, args.grace_s, args.workers, hardening=hardening,
                                         drain_s=args.drain_s))
     except OSError as exc:  # the port is taken (PortInUse), or the metrics port is: one line, no trace

@@ -8,10 +8,10 @@ import pytest
 import trimesh
 
 from estimators.base import UnknownObject
-from estimators.objects import ObjectRegistry, farthest_point_sample, load_object
+from estimators.objects import ObjectRegistry, farthest_point_sample, load_object, load_object_folder
 from flextrack import assets
 
-LMO_CAT = Path("/work/shared/data/lmo_cat/models/obj_000006.ply")
+LMO_CAT = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo" / "models" / "obj_000006.ply"
 DEFAULT_MODEL = assets.default_object_model()
 
 
@@ -62,7 +62,7 @@ def test_registry_from_config_resolves_paths_and_rejects_unknown_keys(box_ply):
         ObjectRegistry.from_config({"box": {"modle": "box.ply"}}, box_ply.parent)
 
 
-@pytest.mark.parametrize("path", [LMO_CAT, DEFAULT_MODEL], ids=["lmo_cat", "default"])
+@pytest.mark.parametrize("path", [LMO_CAT, DEFAULT_MODEL], ids=["lmo", "default"])
 def test_bop_models_take_their_diameter_from_models_info(path):
     if not path.exists():
         pytest.skip(f"{path} is absent")
@@ -70,3 +70,69 @@ def test_bop_models_take_their_diameter_from_models_info(path):
     info = json.loads((path.parent / "models_info.json").read_text())[str(int(path.stem.split("_")[1]))]
     assert model.diameter_m == pytest.approx(info["diameter"] / 1000.0)
     assert 0.01 < np.ptp(model.vertices, axis=0).max() < 0.5  # metres, not millimetres
+
+
+def _bop_folder(tmp_path, info: dict) -> Path:
+    folder = tmp_path / "models"
+    folder.mkdir()
+    trimesh.creation.cylinder(radius=30.0, height=80.0, sections=64).export(folder / "obj_000003.ply")  # mm
+    (folder / "models_info.json").write_text(json.dumps({"3": info}))
+    return folder
+
+
+def test_a_bop_folder_is_read_under_file_stems_with_its_symmetries_in_metres(tmp_path):
+    # a cylinder about z, and a discrete flip about x (translated by 2 mm: the model sits off its axis)
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])
+    flip[:3, 3] = [0.0, 0.0, 2.0]
+    folder = _bop_folder(tmp_path, {"diameter": 100.0, "symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}],
+                                    "symmetries_discrete": [flip.ravel().tolist()]})
+    (model,) = load_object_folder(folder)
+    assert model.object_id == "obj_000003" and model.diameter_m == pytest.approx(0.1)
+    S = model.symmetries
+    steps = int(np.ceil(np.pi / 0.01))  # bop_toolkit's discretisation of a continuous symmetry
+    assert S.shape == (2 * steps, 4, 4) and np.allclose(S[0], np.eye(4))
+    assert np.allclose(S[steps][:3, 3], [0.0, 0.0, 0.002])  # mm -> m
+    for T in S[:: steps // 7]:  # every one a rotation that maps the rim (a circle about z) onto itself
+        assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9)
+        rim = np.array([[0.03, 0.0, 0.0], [0.0, 0.03, 0.0]]) @ T[:3, :3].T + T[:3, 3]
+        assert np.allclose(np.hypot(rim[:, 0], rim[:, 1]), 0.03)
+    plain = load_object("box", tmp_path / "models" / "obj_000003.ply", keypoint_count=4)
+    assert plain.symmetries.shape == (2 * steps, 4, 4)  # load_object reads models_info.json beside the model too
+
+
+def test_lmo_symmetric_objects_carry_their_symmetry():
+    folder = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo" / "models"
+    if not folder.is_dir():
+        pytest.skip(f"the shared data folder lacks LM-O models ({folder})")
+    models = {m.object_id: m for m in load_object_folder(folder)}
+    assert [i for i, m in models.items() if len(m.symmetries) > 1] == ["obj_000010", "obj_000011"]  # eggbox, glue
+    glue = models["obj_000011"]
+    moved = glue.vertices @ glue.symmetries[1][:3, :3].T + glue.symmetries[1][:3, 3]
+    from scipy.spatial import cKDTree
+
+    assert np.median(cKDTree(glue.vertices).query(moved)[0]) < 0.003  # the flip maps the glue onto itself
+
+
+@pytest.mark.parametrize("make, why", [
+    (lambda f: (f / "models_info.json").unlink(), "no models_info.json"),
+    (lambda f: (f / "obj_000003.ply").unlink(), "no BOP models"),
+    (lambda f: (f / "obj_000003.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nend_header\n\x00"),
+     "does not load as a mesh"),
+    (lambda f: (f / "models_info.json").write_text('{"4": {"diameter": 1.0}}'), "not listed"),
+    (lambda f: trimesh.PointCloud(np.random.default_rng(0).normal(size=(50, 3))).export(f / "obj_000003.ply"),
+     "no faces"),
+])
+def test_a_bad_bop_folder_says_what_is_wrong(tmp_path, make, why):
+    folder = _bop_folder(tmp_path, {"diameter": 100.0})
+    make(folder)
+    with pytest.raises(ValueError, match=why):
+        load_object_folder(folder)
+
+
+def test_one_id_for_two_meshes_is_refused(box_ply, tmp_path):
+    registry = ObjectRegistry([load_object("box", box_ply)])
+    registry.add(load_object("box", box_ply))  # the same file again: no conflict
+    other = tmp_path / "other.ply"
+    other.write_bytes(box_ply.read_bytes())
+    with pytest.raises(ValueError, match="registered twice"):
+        registry.add(load_object("box", other))

@@ -6,11 +6,13 @@ from pathlib import Path
 import pytest
 import trimesh
 
-from estimators.base import UnknownEstimator
+from estimators.base import EstimateInput, InvalidInput, UnknownEstimator, UnknownObject
 from estimators.gt_oracle import GtOracleEstimator
+from estimators.objects import ObjectModel, load_object_folder
 from estimators.pnp import PnpEstimator
 from estimators.registry import EstimatorRegistry, known_kinds
 from flextrack import assets
+from flextrack.formats import bop
 from flextrack.testing.toy_sequence import write_orbit_sequence
 
 
@@ -90,3 +92,53 @@ def test_the_default_config_loads():
     registry = EstimatorRegistry.from_config(assets.default_config_path())
     assert {"gt_oracle", "gt_noisy", "pnp"} <= set(registry.names())
     assert registry.get("gt_noisy").noise_t_m == 0.003
+
+
+def _folder_object(tmp_path) -> ObjectModel:
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    trimesh.creation.icosphere(subdivisions=1, radius=40.0).export(folder / "obj_000007.ply")
+    bop.write_models_info(folder / "models_info.json", {7: {"diameter": 80.0}})
+    (model,) = load_object_folder(folder)
+    return model
+
+
+def test_objects_from_a_folder_join_the_region_estimators_and_the_chains_built_on_them(config, tmp_path):
+    config.write_text(config.read_text() + textwrap.dedent("""
+        [[estimators]]
+        name = "region"
+        kind = "region"
+        objects = ["box"]
+        [estimators.params]
+        cache_dir = "cache"
+        views_subdivisions = 1
+        [[estimators]]
+        name = "chain"
+        kind = "chained"
+        [estimators.params]
+        global = "pnp"
+        local = "region"
+    """))
+    mine = _folder_object(tmp_path)
+    registry = EstimatorRegistry.from_config(config, [mine])
+    assert registry.get("region").objects == ["box", "obj_000007"] and registry.get("pnp").objects == ["box"]
+    assert registry.get("chain").objects == ["box", "obj_000007"]
+    assert registry.objects.get("obj_000007") is mine
+    (record,) = registry.prepare(["obj_000007"], processes=1)
+    assert record["built"] and Path(record["cache"]).is_file() and Path(record["cache"]).parent == config.parent / "cache"
+    assert registry.prepare(["obj_000007"], processes=1)[0]["built"] is False  # the cache is read, not rebuilt
+    chain = registry.get("chain")
+    with pytest.raises(InvalidInput, match="'obj_000007' only from a prior: its global part 'pnp' does not know it"):
+        chain.estimate(EstimateInput(frame_id=0, capture_time_ns=0, object_id="obj_000007"))
+    with pytest.raises(UnknownObject, match="ghost"):
+        chain.estimate(EstimateInput(frame_id=0, capture_time_ns=0, object_id="ghost"))
+
+
+def test_objects_from_a_folder_need_a_region_estimator_and_an_id_of_their_own(config, tmp_path):
+    mine = _folder_object(tmp_path)
+    with pytest.raises(ValueError, match="no estimator of kind region"):
+        EstimatorRegistry.from_config(config, [mine])
+    clash = ObjectModel(**{**vars(mine), "object_id": "box"})
+    config.write_text(config.read_text() + '[[estimators]]\nname = "region"\nkind = "region"\n')
+    with pytest.raises(ValueError, match="'box' of .* is also an \\[objects\\] entry"):
+        EstimatorRegistry.from_config(config, [clash])

@@ -160,21 +160,32 @@ def build_viewpoint_model(vertices_m: np.ndarray, faces: np.ndarray, *, subdivis
 
 
 def default_cache_dir() -> Path:
+    """$FLEXTRACK_CACHE/region, else the user's cache ($XDG_CACHE_HOME or ~/.cache)/flextrack/region: one place
+    that `flextrack prepare` fills and every later `flextrack serve` of the same user reads."""
     base = os.environ.get("FLEXTRACK_CACHE") or os.path.join(
         os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "flextrack")
     return Path(base) / "region"
 
 
-def cached_viewpoint_model(vertices_m: np.ndarray, faces: np.ndarray, cache_dir: Path | None = None,
-                           **options) -> ViewpointModel:
-    """The model from `cache_dir` when one was built for this mesh and these options, else built and saved."""
-    vertices_m = np.ascontiguousarray(vertices_m, dtype=np.float64)
-    faces = np.ascontiguousarray(faces, dtype=np.int64)
+def _mesh_arrays(vertices_m: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return np.ascontiguousarray(vertices_m, dtype=np.float64), np.ascontiguousarray(faces, dtype=np.int64)
+
+
+def cache_path(vertices_m: np.ndarray, faces: np.ndarray, cache_dir: Path | None = None, **options) -> Path:
+    """Where the model of this mesh and these options is cached: keyed by the mesh's bytes and the options."""
+    vertices_m, faces = _mesh_arrays(vertices_m, faces)
     key = hashlib.sha256()
     key.update(vertices_m.tobytes())
     key.update(faces.tobytes())
     key.update(repr((MODEL_FORMAT, sorted(options.items()))).encode())
-    path = (cache_dir or default_cache_dir()) / f"viewpoints_{key.hexdigest()[:20]}.npz"
+    return (cache_dir or default_cache_dir()) / f"viewpoints_{key.hexdigest()[:20]}.npz"
+
+
+def cached_viewpoint_model(vertices_m: np.ndarray, faces: np.ndarray, cache_dir: Path | None = None,
+                           **options) -> ViewpointModel:
+    """The model from `cache_dir` when one was built for this mesh and these options, else built and saved."""
+    vertices_m, faces = _mesh_arrays(vertices_m, faces)
+    path = cache_path(vertices_m, faces, cache_dir, **options)
     if path.is_file():
         try:
             return ViewpointModel.load(path)
@@ -186,3 +197,43 @@ def cached_viewpoint_model(vertices_m: np.ndarray, faces: np.ndarray, cache_dir:
     except OSError:
         pass  # a read-only cache still serves, rebuilt per process
     return model
+
+
+@dataclass(frozen=True)
+class ViewpointJob:
+    """One viewpoint model to have in the cache: a mesh, the cache folder (None: the default) and the options."""
+
+    vertices_m: np.ndarray
+    faces: np.ndarray
+    cache_dir: Path | None
+    options: dict
+
+    @property
+    def path(self) -> Path:
+        return cache_path(self.vertices_m, self.faces, self.cache_dir, **self.options)
+
+
+def _build_into_cache(job: ViewpointJob) -> None:
+    cached_viewpoint_model(job.vertices_m, job.faces, job.cache_dir, **job.options)
+
+
+def prepare_viewpoint_models(jobs: list[ViewpointJob], processes: int | None = None) -> list[bool]:
+    """Build the jobs' models that the cache lacks into it, `processes` at a time (default: one per CPU), in
+    fresh (spawned) processes: a server's gRPC threads make forking unsafe. Per job, whether it was built
+    (False: it was cached already). A job whose cache cannot be written is left to its first use."""
+    missing: dict[Path, ViewpointJob] = {}
+    for job in jobs:
+        if not job.path.is_file():
+            missing.setdefault(job.path, job)  # one build per mesh and options, however many ask for it
+    todo = list(missing.values())
+    workers = max(1, min(len(todo), processes or os.cpu_count() or 1))
+    if workers == 1:
+        for job in todo:
+            _build_into_cache(job)
+    elif todo:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            list(pool.map(_build_into_cache, todo))
+    return [job.path in missing for job in jobs]
