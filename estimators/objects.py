@@ -126,6 +126,18 @@ def load_object_folder(folder: str | Path) -> list[ObjectModel]:
     return models
 
 
+def load_object_folders(folders: list[Path]) -> list[ObjectModel]:
+    """The models of every folder (load_object_folder), in order, each id once; ValueError when two files
+    claim one id."""
+    models, seen = [], ObjectRegistry()
+    for folder in folders:
+        for model in load_object_folder(folder):
+            if model.object_id not in seen:
+                models.append(model)
+            seen.add(model)  # the same id from two files: ValueError naming both
+    return models
+
+
 class ObjectRegistry:
     """The objects a server knows, by id."""
 

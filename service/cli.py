@@ -67,19 +67,6 @@ def default_processes() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
-def load_object_folders(folders: list[Path]) -> list:
-    """The ObjectModels of every --objects folder, in order; ValueError (one line) on a bad folder or mesh."""
-    from estimators.objects import ObjectRegistry, load_object_folder
-
-    models, seen = [], ObjectRegistry()
-    for folder in folders:
-        for model in load_object_folder(folder):
-            if model.object_id not in seen:
-                models.append(model)
-            seen.add(model)  # the same id from two files: ValueError naming both
-    return models
-
-
 def load_registry(config: Path, object_models: list, processes: int | None = None):
     """The config's estimators with the --objects models added, their viewpoint models built or read from the
     cache (what `flextrack serve` does before it reports SERVING)."""
@@ -152,6 +139,8 @@ def run(args: argparse.Namespace) -> int:
     if args.prepare_processes < 1:
         print(f"flextrack serve: --prepare-processes must be >= 1, got {args.prepare_processes}", file=sys.stderr)
         return 2
+    from estimators.objects import load_object_folders
+
     try:  # before listening: a bad folder or mesh is the command line's mistake, said in one line
         object_models = load_object_folders(args.objects)
     except ValueError as exc:

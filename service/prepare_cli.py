@@ -13,7 +13,7 @@ import sys
 import time
 from pathlib import Path
 
-from service.cli import DEFAULT_CONFIG, add_object_arguments, load_object_folders
+from service.cli import DEFAULT_CONFIG, add_object_arguments
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -24,6 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from estimators.objects import load_object_folders
     from estimators.registry import EstimatorRegistry
 
     if not args.config.is_file():

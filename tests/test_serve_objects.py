@@ -213,3 +213,23 @@ def test_guide_view_refuses_bad_arguments_in_one_line(tmp_path, capsys):
         err = capsys.readouterr().err
         assert len(err.splitlines()) == 1 and why in err, err
     assert not (tmp_path / "g.png").exists()
+
+
+def test_track_serves_the_folders_objects_from_its_embedded_server(setup, tmp_path, monkeypatch, capsys):
+    from flextrack.cli import main
+    from flextrack.runners import session
+    from flextrack.testing.toy_sequence import write_orbit_sequence
+
+    _, models, config, env = setup
+    monkeypatch.setenv("FLEXTRACK_CACHE", env["FLEXTRACK_CACHE"])
+    seq = write_orbit_sequence(tmp_path / "orbit", frames=5)
+    registry = session.registry_for(seq, session.RunSpec(backend="pnp_region", config=config, objects=(models,)))
+    assert registry.get("pnp_region").objects == ["box", CAT]
+    out = ["--out", str(tmp_path / "o")]
+    for args, why in [(["--config", str(config), "--backend", "pnp_region", "--objects", str(tmp_path)], "no BOP models"),
+                      (["--server", "127.0.0.1:1", "--backend", "pnp_region", "--objects", str(models)],
+                       "flextrack serve --objects"),
+                      (["--backend", "gt", "--objects", str(models)], "is an oracle")]:
+        assert main(["track", str(seq.root), *args, *out]) == 2
+        err = capsys.readouterr().err
+        assert len(err.splitlines()) == 1 and why in err, err

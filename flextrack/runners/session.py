@@ -18,7 +18,7 @@ from client_sdk import TrackerOptions
 from client_sdk.network_model import NetworkOptions
 from client_sdk.slowdown import PIXEL2_FACTOR
 from estimators.gt_oracle import GtOracleEstimator
-from estimators.objects import load_object
+from estimators.objects import load_object, load_object_folders
 from estimators.registry import EstimatorRegistry
 from flextrack.formats.sequence import Sequence
 from flextrack.runners import plots
@@ -40,6 +40,7 @@ class RunSpec:
     speed: float = 1.0
     in_process: bool = False
     config: Path | None = None  # estimator config instead of the oracles
+    objects: tuple[Path, ...] = ()  # BOP models folders the config's region estimators serve too (--objects)
     server: str | None = None  # external server address
     frames: bool = False  # send rendered frames (image estimators) instead of the stand-in JPEG
 
@@ -59,7 +60,9 @@ def at_fps(seq: Sequence, fps: float) -> Sequence:
 def registry_for(seq: Sequence, spec: RunSpec) -> EstimatorRegistry:
     if spec.config is None:
         return oracle_registry([seq.root], noise_seed=spec.seed)
-    registry = EstimatorRegistry.from_config(spec.config)
+    models = load_object_folders(spec.objects)
+    registry = EstimatorRegistry.from_config(spec.config, models)
+    registry.prepare([m.object_id for m in models])  # as `flextrack serve --objects`: no frame waits for one
     for estimator in registry:
         if isinstance(estimator, GtOracleEstimator):
             estimator.add_sequence(seq.root, seq.name)
