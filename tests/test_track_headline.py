@@ -1,0 +1,51 @@
+"""`flextrack track` on a recording that leaves the view: the FINE-only figure beside the all-frames one, and
+an error plot with gaps where nothing was scored (issue 31 item 4)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+
+from flextrack.geometry.camera import PinholeCamera
+from flextrack.runners.plots import plot_error
+from flextrack.runners.results import TrackRecord
+from flextrack.runners.track_cli import fine_only
+
+
+def _pose(z: float, dx: float = 0.0) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = [dx, 0.0, z]
+    return T
+
+
+def _record() -> TrackRecord:
+    """Frames: 3 FINE within 1 mm, 2 out of view (no ground truth), 2 WRONG_POSE 10 cm off."""
+    record = TrackRecord(PinholeCamera.linemod(), np.array([[0.05, 0, 0], [0, 0.05, 0], [0, 0, 0.05], [0, 0, 0]]))
+    frames = [("FINE", 0.001), ("FINE", 0.001), ("FINE", 0.001), ("FINE", None), ("FINE", None),
+              ("WRONG_POSE", 0.1), ("WRONG_POSE", 0.1)]
+    for i, (status, dx) in enumerate(frames):
+        record.add(i, i * 50_000_000, status, _pose(0.5, dx or 0.0), None if dx is None else _pose(0.5))
+    return record
+
+
+def test_fine_only_scores_the_frames_the_tracker_called_fine():
+    record = _record()
+    fine = fine_only(record)
+    assert fine["frames"] == 3 and math.isclose(fine["pos_mm"], 1.0)
+    assert fine["proj_px"] < record.summarize().proj_px / 10  # the lost frames dominate the all-frames mean
+    json.dumps(fine)  # goes into the summary file
+
+
+def test_error_plot_has_gaps_where_nothing_was_scored(tmp_path, monkeypatch):
+    import matplotlib.axes
+
+    plotted = []
+    original = matplotlib.axes.Axes.plot
+    monkeypatch.setattr(matplotlib.axes.Axes, "plot",
+                        lambda self, *a, **k: plotted.append((a, k)) or original(self, *a, **k))
+    path = plot_error(_record(), tmp_path / "error.png")
+    assert path.stat().st_size > 10_000
+    px = next(np.asarray(a[1], float) for a, k in plotted if k.get("label") == "2D error")
+    assert np.isnan(px[3:5]).all() and np.isfinite(px[[0, 1, 2, 5, 6]]).all()  # a gap, not a line across it
