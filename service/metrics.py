@@ -20,16 +20,27 @@ names so), never the client's raw string, so that unknown names cannot grow the 
 
 from __future__ import annotations
 
+import logging
+import queue
+import selectors
+import socket
 import ssl
 import threading
+import time
 from collections.abc import Callable
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from concurrent.futures import ThreadPoolExecutor
+from http.server import BaseHTTPRequestHandler, HTTPServer
 
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 
 UNKNOWN_ESTIMATOR = "(unknown)"  # the estimator label of requests for names the registry does not know
 LOADING_ESTIMATORS = "(loading)"  # the label of every request that arrives before the estimators are loaded
 METRICS_PATH = "/metrics"
+METRICS_THREADS = 4  # scrapes answered at once
+METRICS_IDLE_S = 10.0  # a connection whose request has not arrived (or stalls) within this is closed
+MAX_METRICS_CONNECTIONS = 256  # connections held at once; past it a new one is closed at once
+
+log = logging.getLogger("flextrack.service")
 
 LATENCY_BUCKETS_S = (0.001, 0.0025, 0.005, 0.01, 0.02, 0.033, 0.05, 0.075, 0.1, 0.15, 0.25, 0.5, 1.0, 2.5)
 BATCH_BUCKETS = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 64)
@@ -112,23 +123,91 @@ class ServiceMetrics:
             def log_message(self, *args) -> None:  # no access lines on stderr: the log is JSON lines
                 pass
 
-        server = (_TlsHttpServer if tls is not None else ThreadingHTTPServer)((host, port), Handler)
-        server.tls = tls
-        server.daemon_threads = True
+        server = _MetricsHttpServer((host, port), Handler, tls)
         thread = threading.Thread(target=server.serve_forever, name="metrics-http", daemon=True)
         thread.start()
         return server, thread
 
 
-class _TlsHttpServer(ThreadingHTTPServer):
-    """HTTPS: each connection's TLS handshake runs in its own thread, so a slow client holds no other scrape."""
+class _MetricsHttpServer(HTTPServer):
+    """HTTP(S) with a bounded cost per connection: accepted connections wait for their request in one selector
+    thread (no thread each), a readable one is answered by a pool of METRICS_THREADS (its TLS handshake there too),
+    every read and write times out after METRICS_IDLE_S."""
 
-    tls: ssl.SSLContext
+    request_queue_size = 128  # the listen backlog (socketserver's 5 makes a burst of connections wait seconds)
 
-    def finish_request(self, request, client_address) -> None:
-        request.settimeout(10.0)
+    def __init__(self, address, handler, tls: ssl.SSLContext | None = None):
+        self.tls = tls
+        self._pool = ThreadPoolExecutor(METRICS_THREADS, thread_name_prefix="metrics")
+        self._selector = selectors.DefaultSelector()
+        self._arrivals: queue.SimpleQueue = queue.SimpleQueue()
+        self._wake_read, self._wake_write = socket.socketpair()
+        self._selector.register(self._wake_read, selectors.EVENT_READ)
+        self._held = 0  # connections accepted and not yet closed
+        self._deadlines: dict[socket.socket, float] = {}  # connections waiting for their request (selector thread)
+        self._lock = threading.Lock()
+        self._closing = False
+        self._waiter = threading.Thread(target=self._wait_for_requests, name="metrics-idle", daemon=True)
+        self._waiter.start()
+        super().__init__(address, handler)  # last: a failed bind calls server_close, which stops the waiter
+
+    def process_request(self, request, client_address) -> None:
+        """In serve_forever's thread, for each accepted connection: hand it to the selector thread."""
+        with self._lock:
+            if self._held >= MAX_METRICS_CONNECTIONS:
+                super().shutdown_request(request)
+                return
+            self._held += 1
+        self._arrivals.put(request)
+        self._wake_write.send(b"\0")
+
+    def _wait_for_requests(self) -> None:
+        deadlines = self._deadlines
+        while not self._closing:
+            timeout = max(0.0, min(deadlines.values()) - time.monotonic()) if deadlines else None
+            for key, _ in self._selector.select(timeout):
+                if key.fileobj is self._wake_read:
+                    self._wake_read.recv(4096)
+                    while not self._arrivals.empty():
+                        request = self._arrivals.get()
+                        deadlines[request] = time.monotonic() + METRICS_IDLE_S
+                        self._selector.register(request, selectors.EVENT_READ)
+                    continue
+                self._selector.unregister(key.fileobj)
+                del deadlines[key.fileobj]
+                self._pool.submit(self._answer, key.fileobj)
+            now = time.monotonic()
+            for request in [r for r, deadline in deadlines.items() if deadline <= now]:  # idle too long
+                self._selector.unregister(request)
+                del deadlines[request]
+                self.shutdown_request(request)
+
+    def _answer(self, request: socket.socket) -> None:
         try:
-            request = self.tls.wrap_socket(request, server_side=True)
+            request.settimeout(METRICS_IDLE_S)
+            if self.tls is not None:
+                request = self.tls.wrap_socket(request, server_side=True)
+            self.finish_request(request, request.getpeername())
         except (OSError, ssl.SSLError):
-            return  # a failed handshake: nothing to answer
-        super().finish_request(request, client_address)
+            pass  # the client went away, stalled or failed its handshake: nothing to answer, nothing to say
+        except Exception as exc:  # noqa: BLE001 - one JSON line, never a traceback on stderr
+            log.warning("metrics request failed", extra={"error": repr(exc)})
+        finally:
+            self.shutdown_request(request)
+
+    def shutdown_request(self, request) -> None:
+        super().shutdown_request(request)
+        with self._lock:
+            self._held -= 1
+
+    def server_close(self) -> None:
+        super().server_close()
+        self._closing = True
+        self._wake_write.send(b"\0")
+        self._waiter.join()
+        for request in list(self._deadlines):
+            self.shutdown_request(request)
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        self._selector.close()
+        self._wake_read.close()
+        self._wake_write.close()

@@ -4,7 +4,11 @@ walks them."""
 
 from __future__ import annotations
 
+import socket
+import struct
 import threading
+import time
+import urllib.request
 
 import grpc
 import numpy as np
@@ -15,10 +19,17 @@ from estimators.registry import EstimatorRegistry
 from flextrack.benchmarks.jpeg_bound_bench import progressive_jpeg, scan_bomb
 from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
-from service import request_decoding
+from service import metrics, request_decoding
 from service.hardening import Hardening
 from service.request_decoding import MAX_JPEG_SCANS
 from service.server import BackgroundServer
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
 
 INTRINSICS = pb.Intrinsics(fx=500, fy=500, cx=320, cy=240, width=640, height=480)
 
@@ -104,3 +115,41 @@ def test_repeated_fields_are_counted_before_anything_walks_them(server, jpeg):
         stub.Estimate(_request(jpeg, prior=prior), timeout=30)
     assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
     assert "36 values" in err.value.details() and "got 1000000" in err.value.details()
+
+
+# -- the metrics port ----------------------------------------------------------------------------------------
+
+def _wait_for(condition, timeout_s: float = 20.0) -> None:
+    """Wait until `condition()` holds (polled; the bound only stops a broken test from hanging)."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "condition not reached"
+        time.sleep(0.01)
+
+
+def test_idle_metrics_connections_hold_no_thread_and_are_closed_when_idle_too_long(monkeypatch, capfd):
+    monkeypatch.setattr(metrics, "METRICS_IDLE_S", 5.0)
+    port = _free_port()
+    with BackgroundServer(EstimatorRegistry([ImageEstimator()]), grace_s=0.0,
+                          hardening=Hardening(metrics_port=port)) as srv:
+        http = srv.running.metrics_http
+        scrape = f"http://127.0.0.1:{port}/metrics"
+        assert "flextrack_streams" in urllib.request.urlopen(scrape, timeout=30).read().decode()  # pool started
+        threads = threading.active_count()
+        idle = [socket.create_connection(("127.0.0.1", port)) for _ in range(100)]
+        _wait_for(lambda: http._held == 100)  # every one accepted and waiting for its request
+        assert threading.active_count() - threads <= 20  # none of them holds a thread
+        assert "flextrack_streams" in urllib.request.urlopen(scrape, timeout=30).read().decode()  # scrapes go on
+        _wait_for(lambda: http._held == 0)  # closed after METRICS_IDLE_S without a request
+        for s in idle:
+            s.settimeout(10)
+            assert s.recv(1) == b""  # the server closed it
+            s.close()
+        # clients that go away before their answer: no traceback (stderr is JSON lines)
+        for _ in range(20):
+            s = socket.create_connection(("127.0.0.1", port))
+            s.sendall(b"GET /metrics HTTP/1.0\r\n\r\n")
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # reset, not a clean close
+            s.close()
+        _wait_for(lambda: http._held == 0)
+    assert "Traceback" not in capfd.readouterr().err

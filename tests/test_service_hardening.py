@@ -145,14 +145,16 @@ def test_a_thousand_unknown_names_leave_the_metrics_page_the_same_size(server):
     stub, hardening, _ = server
     from prometheus_client import generate_latest
 
-    _rpc_error(stub.Estimate, pb.EstimateRequest(estimator="warm-up"))  # the "(unknown)" series exists now
+    _rpc_error(stub.Estimate, pb.EstimateRequest(estimator="warm-up"))
+    # the server counts a call just after its answer went out: wait until it has, then the "(unknown)" series exist
+    _wait_for(lambda: hardening.metrics.count("NOT_FOUND", "Estimate", "(unknown)") >= 1)
     before, size_before = _series(hardening.metrics), len(generate_latest(hardening.metrics.registry))
     for i in range(1000):
         _rpc_error(stub.Estimate, pb.EstimateRequest(estimator=f"name-{i}-" + "n" * 100))
+    _wait_for(lambda: hardening.metrics.count("NOT_FOUND", "Estimate", "(unknown)") >= 1001)
     after, size_after = _series(hardening.metrics), len(generate_latest(hardening.metrics.registry))
     assert after == before  # no new series (label sets): only counts changed
     assert abs(size_after - size_before) < 200  # a few digits more in the counts and latency sums
-    assert hardening.metrics.count("NOT_FOUND", "Estimate", "(unknown)") >= 1001
     assert "name-" not in generate_latest(hardening.metrics.registry).decode()
     assert set(hardening.admission._depth) <= {"pnp", "images", "(unknown)"}  # queue depths keyed the same way
 
