@@ -33,6 +33,11 @@ def test_evaluation_scores_every_frame_and_writes_its_results(tmp_path):
     assert saved["rotations"] == 4 and len(saved["frames"]) == 3
     assert saved["provenance"]["options"]["rotations"] == 4 and {"commit", "dirty", "host", "date"} <= set(saved["provenance"])
     assert summary["rendered"]["frames"] == 3 and 0.0 <= summary["rendered"]["proj_below_5px"] <= 1.0
+    # ADD-S beside ADD on every frame (never above it); ADD(-S) is ADD for the default object (no symmetry)
+    s = summary["rendered"]
+    assert all(f["adds_mm"] <= f["add_mm"] + 1e-9 for f in saved["frames"])
+    assert s["adds_below_10pct"] >= s["add_below_10pct"] and not s["symmetric"]
+    assert s["add_s_below_10pct"] == s["add_below_10pct"]
     assert (tmp_path / "poses.jpg").stat().st_size > 0
 
 

@@ -30,18 +30,30 @@ def add_m(T_est: np.ndarray, T_gt: np.ndarray, points_O: np.ndarray) -> float:
     return float(np.mean(np.linalg.norm(d, axis=1)))
 
 
-def adds_m(T_est: np.ndarray, T_gt: np.ndarray, points_O: np.ndarray, chunk_elements: int = 1 << 20) -> float:
+def adds_m(T_est: np.ndarray, T_gt: np.ndarray, points_O: np.ndarray) -> float:
     """ADD-S (BOP's `adi`, for symmetric objects): mean over the model points under the true pose of the
-    distance to the closest model point under the estimated pose, in metres. Exact (brute force over point
-    differences, at most `chunk_elements` pairs at a time): no KD-tree, so no scipy."""
-    est = se3.transform_points(T_est, points_O)
-    gt = se3.transform_points(T_gt, points_O)
-    step = max(1, chunk_elements // max(1, len(est)))
-    nearest = np.empty(len(gt))
-    for s in range(0, len(gt), step):
-        d = gt[s:s + step, None, :] - est[None, :, :]
-        nearest[s:s + step] = np.sqrt(np.einsum("ijk,ijk->ij", d, d).min(axis=1))
-    return float(nearest.mean())
+    distance to the closest model point under the estimated pose, in metres. Exact nearest neighbours from
+    a KD-tree, as the BOP toolkit finds them; many poses of one model: `AddS(points_O)`, which builds the tree
+    once."""
+    return AddS(points_O)(T_est, T_gt)
+
+
+class AddS:
+    """ADD-S of many pose pairs against one model: a KD-tree of the model points in the object frame, built
+    once; each pair queries the true points carried into the estimate's object frame (T_est^-1 T_gt), where
+    the distances are those of BOP's `adi` (a rigid motion keeps them). Brute force costs 4.7 s a pair on the
+    LINEMOD cat's full mesh; this, milliseconds."""
+
+    def __init__(self, points_O: np.ndarray):
+        from scipy.spatial import cKDTree  # the server extra; not needed by the rest of this module
+
+        self.points_O = np.asarray(points_O, dtype=float)
+        self._tree = cKDTree(self.points_O)
+
+    def __call__(self, T_est: np.ndarray, T_gt: np.ndarray) -> float:
+        relative = se3.inverse(np.asarray(T_est, float)) @ np.asarray(T_gt, float)
+        distances, _ = self._tree.query(se3.transform_points(relative, self.points_O), k=1)
+        return float(distances.mean())
 
 
 def proj_px_many(T_est: np.ndarray, T_gt: np.ndarray, camera: PinholeCamera, points_O: np.ndarray,
