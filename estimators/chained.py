@@ -39,7 +39,7 @@ class ChainedEstimator(Estimator):
 
     def __init__(self, name: str, global_estimator: Estimator, local_estimator: Estimator, *,
                  max_prior_deg: float = 30.0, max_prior_m: float = 0.1, fallback: bool = True):
-        super().__init__(name, sorted(set(global_estimator.objects) | set(local_estimator.objects)))
+        super().__init__(name)
         self.global_estimator = global_estimator
         self.local_estimator = local_estimator
         self.max_prior_rad = np.radians(max_prior_deg)
@@ -57,6 +57,11 @@ class ChainedEstimator(Estimator):
             raise ValueError(f"estimator '{spec.name}' (kind chained) needs params `global` and `local` "
                              "(names of estimators declared above it)")
         return cls(spec.name, spec.estimator(p.pop("global")), spec.estimator(p.pop("local")), **p)
+
+    @property
+    def objects(self) -> list[str]:
+        """Either part's, as they are now (an oracle's grow as sequences are added to it)."""
+        return sorted(set(self.global_estimator.objects) | set(self.local_estimator.objects))
 
     @property
     def ready(self) -> bool:
