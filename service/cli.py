@@ -57,7 +57,7 @@ def add_object_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a BOP models folder (obj_NNNNNN.ply in mm, models_info.json beside them): every model is "
                              "served under its file stem (obj_000006) by the config's region estimators and the "
                              "chained ones built on them; their viewpoint models are built (or read from the cache "
-                             "`flextrack prepare` fills) before health says SERVING (repeatable; docs/own-data.md)")
+                             "`flextrack prepare` fills) before health says SERVING (repeatable; docs/service.md)")
     parser.add_argument("--prepare-processes", type=int, default=default_processes(), metavar="N",
                         help="processes that build the viewpoint models of --objects at once (default: %(default)s, "
                              "the CPUs this process may run on)")

@@ -17,7 +17,8 @@ from service.cli import DEFAULT_CONFIG, add_object_arguments
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.description = __doc__.split("\n\n")[1].replace("\n", " ")
+    parser.description = ("Build the region estimators' viewpoint models into the user's cache ahead of serving. "
+                          + __doc__.split("\n\n")[1].replace("\n", " "))
     parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG,
                         help="the server config (TOML) whose region estimators (and their options) the models are for")
     add_object_arguments(parser)
