@@ -40,9 +40,10 @@ def _gravity_from_motion(R_OB: tuple, window: list[tuple], b_g: tuple) -> np.nda
 
 def initial_state(x_pose: tuple, T_CO_sigma: np.ndarray, window: list[tuple], R_CB: np.ndarray,
                   est: initialization.InitEstimate, options: FilterOptions, gyro: tuple = (0.0, 0.0, 0.0),
-                  gyro_var: float = 0.0) -> FilterState:
+                  gyro_var: float = 0.0, td_std: float | None = None) -> FilterState:
     """The state at the first answer's time: pose from it (x_pose: R_OB 9, p_OB 3), the rest from the window.
-    `gyro`: the raw gyro rate at that time, `gyro_var` its sample noise's variance per axis.
+    `gyro`: the raw gyro rate at that time, `gyro_var` its sample noise's variance per axis; `td_std` the
+    time offset's uncertainty (default `time_offset_std_s`; a re-initialisation keeps what it had learnt).
 
     The answer shows the pose at its time plus the unknown time offset error d_td: on a moving device
     the first pose's error is -H_pose^-1 (H_td d_td + n), so it starts correlated with d_td (and takes
@@ -66,7 +67,7 @@ def initial_state(x_pose: tuple, T_CO_sigma: np.ndarray, window: list[tuple], R_
     cov[V, V] = np.eye(3) * v_std ** 2
     cov[BG, BG] = np.eye(3) * bg_std ** 2
     cov[BA, BA] = np.eye(3) * options.init_accel_bias_std ** 2
-    td_var = options.time_offset_std_s ** 2
+    td_var = (options.time_offset_std_s if td_std is None else td_std) ** 2
     cov[TD, TD] = td_var
     # the pose block: the answer's covariance mapped back through the measurement Jacobian, with the
     # time offset's share (the velocity is estimated 0: its part of H_td is second order)

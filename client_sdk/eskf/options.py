@@ -34,6 +34,22 @@ class FilterOptions:
     lower them: a yaml's lab figures and a vibrating device differ by an order of magnitude (EuRoC's drone)."""
     noise_window_samples: int = 200
     """The running estimate's memory, samples (1 s at 200 Hz)."""
+    match_imu_noise: bool = True
+    """Raise the densities further to what the answers' innovations show (covariance matching,
+    `eskf.noise_matching`): a phone's scale and misalignment errors, filtered stream and irregular stamps
+    look like far more white noise than its samples show (a hand-held Nexus 5: ~50x the yaml's gyro)."""
+    noise_match_answers: float = 100.0
+    """The innovation fit's memory, answers (~6 s at the phone experiment's answer rate)."""
+
+    max_imu_gap_s: float = 0.05
+    """An interval between IMU samples longer than this (or a time this far past the newest sample) was not
+    measured: a phone's stream stops for seconds at times. The state then coasts (no turn, no
+    acceleration) and its covariance grows at the hand-motion densities below, so that the pose is
+    honestly uncertain (not FINE) until the IMU is back, and the answers keep it on track meanwhile."""
+    silent_gyro_density: float = 0.5
+    """rad/s/sqrt(Hz): the unmeasured turn of a hand-held device (~1 rad/s over a few answers' intervals)."""
+    silent_accel_density: float = 2.0
+    """m/s^2/sqrt(Hz): its unmeasured acceleration."""
 
     # --- Initial uncertainty (1 sigma, per axis) ---
     init_velocity_std: float = 0.3

@@ -40,6 +40,8 @@ class UpdateResult:
     state: FilterState | None  # the corrected state when accepted
     td: float  # the corrected time offset (s)
     closed_loop: np.ndarray | None = None  # I - K H, what the update does to the error (when accepted)
+    residual: np.ndarray | None = None  # r, and its covariance S (for `eskf.noise_matching`)
+    S: np.ndarray | None = None
 
 
 def pose_jacobian(x: tuple, R_CB: np.ndarray, w: tuple, v: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -106,7 +108,7 @@ def update(state: FilterState, td: float, T_CO_meas: np.ndarray, sigma: np.ndarr
     S_inv = np.linalg.inv(0.5 * (S + S.T))
     chi2 = float(np.dot(r, np.dot(S_inv, r)))
     if not np.isfinite(chi2) or chi2 > gate_chi2:
-        return UpdateResult(False, chi2, None, td)
+        return UpdateResult(False, chi2, None, td, None, r, S)
     K = np.dot(PHt, S_inv)
     if not excited:
         K[TD] = 0.0
@@ -115,4 +117,4 @@ def update(state: FilterState, td: float, T_CO_meas: np.ndarray, sigma: np.ndarr
     cov = np.dot(np.dot(IKH, P0), IKH.T) + np.dot(np.dot(K, sigma), K.T)
     cov = 0.5 * (cov + cov.T)
     x, c, td = inject(state.x, state.c, td, dx, gravity_state)
-    return UpdateResult(True, chi2, FilterState(x, c, cov), td, IKH)
+    return UpdateResult(True, chi2, FilterState(x, c, cov), td, IKH, r, S)

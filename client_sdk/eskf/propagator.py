@@ -57,8 +57,11 @@ class CovariancePropagator:
         # n2 <- (1 - alpha) n2 + alpha seen, _Q_EVERY times: the old n2's factor and each new value's
         self._decay = (1.0 - alpha) ** _Q_EVERY
         self._weights = alpha * (1.0 - alpha) ** np.arange(_Q_EVERY - 1, -1, -1)
+        self._seen = self._densities  # the densities the IMU shows (observe), never below the yaml's
+        self._matched = (0.0, 0.0)  # the densities the answers' innovations show (`match`)
         self._n2 = np.zeros(2)  # running estimate of the squared white-noise density, gyro and accel
         self._pending: list[tuple] = []  # the samples not yet in it, and the three before them
+        self._silent = (options.silent_gyro_density ** 2, options.silent_accel_density ** 2)
         self._phi = _IDENTITY.copy()
         self._phi_dt = 0.0  # the interval the +-dt entries of _phi hold
         self._set_q(*self._densities)
@@ -92,8 +95,14 @@ class CovariancePropagator:
         d2 = d * d
         seen = np.stack([d2[:, 0:3].sum(axis=1), d2[:, 3:6].sum(axis=1)]) * (dt / 12.0)  # -> n^2 per sample
         self._n2 = self._n2 * self._decay + seen @ self._weights  # the averages, sample by sample, at once
-        self._set_q(*(est if est > _RAISE_ABOVE * base else base
-                      for est, base in zip(np.sqrt(self._n2).tolist(), self._densities)))
+        self._seen = tuple(est if est > _RAISE_ABOVE * base else base
+                           for est, base in zip(np.sqrt(self._n2).tolist(), self._densities))
+        self._set_q(*map(max, self._seen, self._matched))
+
+    def match(self, gyro_density: float, accel_density: float) -> None:
+        """Raise the densities to what the answers' innovations show (`eskf.noise_matching`; 0: no raise)."""
+        self._matched = (gyro_density, accel_density)
+        self._set_q(*map(max, self._seen, self._matched))
 
     @property
     def densities(self) -> tuple[float, float]:
@@ -122,11 +131,19 @@ class CovariancePropagator:
         """Phi of the last `step` with a positive interval (a view, overwritten by the next)."""
         return self._phi
 
-    def step(self, cov: np.ndarray, x: tuple, c: tuple, t0_ns: int, t1_ns: int, s0: tuple, s1: tuple) -> np.ndarray:
-        """The covariance at t1 from the one at t0; s0, s1 the raw IMU samples around the interval."""
+    def step(self, cov: np.ndarray, x: tuple, c: tuple, t0_ns: int, t1_ns: int, s0: tuple, s1: tuple,
+             measured: bool = True) -> np.ndarray:
+        """The covariance at t1 from the one at t0; s0, s1 the raw IMU samples around the interval; not
+        `measured`: an interval in a gap of the IMU's stream (`propagation.step_silent`)."""
         dt = (t1_ns - t0_ns) * NS
         if dt <= 0:
             return cov
+        if not measured:
+            phi = self.transition(x, dt, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+            out = np.dot(np.dot(phi, cov), phi.T)
+            q = np.array([self._silent[0]] * 3 + [self._silent[1]] * 3 + list(self._q_density[6:])) * dt
+            out.ravel()[_Q_INDEX] += q
+            return out
         w = (0.5 * (s0[1] + s1[1]) - c[0], 0.5 * (s0[2] + s1[2]) - c[1], 0.5 * (s0[3] + s1[3]) - c[2])
         a = (0.5 * (s0[4] + s1[4]) - c[3], 0.5 * (s0[5] + s1[5]) - c[4], 0.5 * (s0[6] + s1[6]) - c[5])
         phi = self.transition(x, dt, w, a)

@@ -35,13 +35,14 @@ from client_sdk import initialization
 from client_sdk import state as state_codec
 from client_sdk.eskf.error_dynamics import ErrorDynamics
 from client_sdk.eskf.initializer import initial_state
+from client_sdk.eskf.noise_matching import NoiseMatcher, blocks
 from client_sdk.eskf.pose_update import pose_covariance, pose_jacobian, update
 from client_sdk.eskf.propagator import CovariancePropagator
-from client_sdk.eskf.state import FilterState
+from client_sdk.eskf.state import TD, FilterState
 from client_sdk.imu_buffer import ImuBuffer
 from client_sdk.inspection import PoseInspector, Status
 from client_sdk.options import TrackerOptions
-from client_sdk.propagation import rotate, step_midpoint
+from client_sdk.propagation import measured, rotate, step_midpoint, step_silent
 from client_sdk.refinement import ResponseOutcome
 from client_sdk.state import TrackerState
 from client_sdk.tracker_base import FrameResult, TrackerBase, as_int, check_rigid, imu_sample
@@ -70,6 +71,9 @@ class FilterTracker(TrackerBase):
         self._corners_O = np.asarray(bbox_corners_O, dtype=float)
         self._assess_options = replace(o, init_require_still=False)  # the filter starts while moving
         self._prop = CovariancePropagator(fo)
+        self._max_gap_ns = round(fo.max_imu_gap_s * 1e9)
+        self._matchers = (NoiseMatcher(fo.noise_match_answers, 1), NoiseMatcher(fo.noise_match_answers, 3)) \
+            if fo.match_imu_noise else None
         self._default_sigma = np.diag([(fo.default_rotation_std_deg * _DEG) ** 2] * 3
                                       + [fo.default_translation_std_m ** 2] * 3)
         self._buf = ImuBuffer(round(o.imu_buffer_s * 1e9))
@@ -135,8 +139,9 @@ class FilterTracker(TrackerBase):
         buf.append(s, new)
 
     def _step(self, st: FilterState, t0: int, t1: int, s0: tuple, s1: tuple) -> FilterState:
-        x = step_midpoint(st.x, st.c, t0, t1, s0, s1)
-        cov = self._prop.step(st.cov, x, st.c, t0, t1, s0, s1)
+        seen = measured(t1, s0, s1, self._max_gap_ns)
+        x = (step_midpoint if seen else step_silent)(st.x, st.c, t0, t1, s0, s1)
+        cov = self._prop.step(st.cov, x, st.c, t0, t1, s0, s1, seen)
         phi = st.phi
         if phi is not None and t1 > t0:  # recording the error dynamics
             phi = self._prop.last_transition @ phi
@@ -177,7 +182,8 @@ class FilterTracker(TrackerBase):
         s0, s1 = self._samples_around(i)
         if with_covariance:
             return self._step(st, base_t, t, s0, s1)
-        return FilterState(step_midpoint(st.x, st.c, base_t, t, s0, s1), st.c, st.cov)
+        step = step_midpoint if measured(t, s0, s1, self._max_gap_ns) else step_silent
+        return FilterState(step(st.x, st.c, base_t, t, s0, s1), st.c, st.cov)
 
     def _rate_at(self, t: int, c: tuple) -> tuple:
         """The bias-corrected gyro rate (body) of the newest sample at or before t."""
@@ -360,6 +366,7 @@ class FilterTracker(TrackerBase):
         st = self._full_at(tau)
         res = update(st, self._td, T, sigma, self._R_CB, self._t_CB, self._rate_at(tau, st.c),
                      self._rate_noise_var(tau), fo.gate_chi2, fo.gravity_state)
+        self._match_noise(res, (tau - self._anchor[0]) * 1e-9)
         if not res.accepted:
             self._rejected += 1
             if self._rejected < fo.max_rejections:
@@ -384,6 +391,24 @@ class FilterTracker(TrackerBase):
             self._ease = (self._ease_left(t_shown) + jump, t_shown)
         return self._outcome(ResponseOutcome.APPLIED, "tracking" + note)
 
+    def _match_noise(self, res, dt: float) -> None:
+        """Feed an answer's innovation to the noise fits (`eskf.noise_matching`) and use what they say. A gated
+        answer counts as one on the gate (an outlier's size says nothing of the IMU; that the filter gated it
+        may: too little process noise); one across a gap of the IMU's stream not at all."""
+        if self._matchers is None or res.residual is None or not self._measured_since(self._anchor[0]):
+            return
+        now = self._prop.densities
+        shrink = min(1.0, self.options.filter.gate_chi2 / res.chi2) if res.chi2 > 0 else 1.0
+        for m, d, (r2, trace_s) in zip(self._matchers, now, blocks(res.residual, res.S)):
+            m.add(r2 * shrink, trace_s, d, dt)
+        self._prop.match(self._matchers[0].density, self._matchers[1].density)
+
+    def _measured_since(self, t: int) -> bool:
+        """Whether the IMU measured everything from t to the newest sample (no gap in its stream)."""
+        times, gap = self._buf.times, self._max_gap_ns
+        i = max(self._buf.index_at_or_before(t), 0)
+        return all(times[k + 1] - times[k] <= gap for k in range(i, len(times) - 1))
+
     def _initialize(self, tau: int, T_CO: np.ndarray, sigma: np.ndarray) -> None:
         T_OB = np.linalg.inv(T_CO) @ np.vstack([np.hstack([self._R_CB, self._t_CB[:, None]]), [0, 0, 0, 1]])
         x_pose = tuple(T_OB[:3, :3].ravel().tolist()) + tuple(T_OB[:3, 3].tolist())
@@ -391,11 +416,14 @@ class FilterTracker(TrackerBase):
         at_tau = self._buf.samples[max(self._buf.index_at_or_before(tau), 0)]  # the sample at or before tau
         window = self._buf.window(tau - window_ns, tau) or [at_tau]
         est = initialization.estimate(window, self.options)
+        if len(window) < 2 or tau - window[-1][0] > self._max_gap_ns:  # in a gap of the IMU: nothing measured
+            est = replace(est, still=False)
         self._rejected = 0
-        self._td = self.options.filter.time_offset_s
+        # the time offset is the device's, not the track's: a re-initialisation keeps the estimate and its sigma
+        td_std = None if self._anchor is None else float(self._anchor[1].cov[TD, TD]) ** 0.5
         self._anchor = None
         st = initial_state(x_pose, sigma, window, self._R_CB, est, self.options.filter, gyro=at_tau[1:4],
-                           gyro_var=self._rate_noise_var(tau))
+                           gyro_var=self._rate_noise_var(tau), td_std=td_std)
         if self.error_dynamics is not None:
             self.error_dynamics.restart(st.cov)
             st = replace(st, phi=np.eye(st.cov.shape[0]))
