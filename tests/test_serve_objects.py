@@ -233,3 +233,15 @@ def test_track_serves_the_folders_objects_from_its_embedded_server(setup, tmp_pa
         assert main(["track", str(seq.root), *args, *out]) == 2
         err = capsys.readouterr().err
         assert len(err.splitlines()) == 1 and why in err, err
+
+
+def test_prepare_without_objects_prepares_the_configs_region_objects(setup, tmp_path):
+    _, _, config, env = setup
+    env = {**env, "FLEXTRACK_CACHE": str(tmp_path / "cache")}
+    done = _flextrack("prepare", "--config", str(config), env=env)
+    assert done.returncode == 0 and "region box" in " ".join(done.stdout.split()), done.stderr
+    assert len(list((tmp_path / "cache" / "region").glob("viewpoints_*.npz"))) == 1
+    bare = tmp_path / "bare.toml"
+    bare.write_text('[[estimators]]\nname = "gt"\nkind = "gt_oracle"\n')
+    done = _flextrack("prepare", "--config", str(bare), env=env)
+    assert done.returncode == 2 and "declares no region estimator" in done.stderr
