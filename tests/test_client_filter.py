@@ -92,7 +92,8 @@ def test_exact_answers_on_a_still_device_leave_the_time_offset_alone():
     assert still.tracker.time_offset_s == 0.0
     moving = drive(m, TrackerOptions(), duration_s=8.0, fps=60.0, answer_covariance=exact, seed=7, **IMU_NOISE)
     assert moving.tracker.time_offset_s != 0.0 and abs(moving.tracker.time_offset_s) < 1e-3
-    assert _errors(moving, m)[-120:].mean() < 0.05
+    # exact answers are weighed as 0.1 deg / 1 mm (FilterOptions.answer_floor_*): ~0.07 px here, 0.05 without
+    assert _errors(moving, m)[-120:].mean() < 0.1
     assert all(s is not Status.WRONG_POSE for s in moving.statuses)
 
 

@@ -20,7 +20,8 @@ What differs from the paper's PRM (docs/tracker.md has the equations):
 - Initialisation does not wait for a still device: a moving start takes gravity's direction from
   the IMU window with a wider uncertainty.
 - The status: the PIA as before, and a pose whose projected 1-sigma uncertainty exceeds
-  `max_sigma_px` is TRACKING_LOST ("uncertain"), so a doubtful pose is never FINE.
+  `max_sigma_px` is TRACKING_LOST ("uncertain"), so a doubtful pose is never FINE; nor is one whose
+  latest answer was gated (the filter's model failed: a real phone's IMU jolts), until one is applied.
 
 No threads, sockets, sleeps or clocks; the same events give the same outputs, bit for bit.
 """
@@ -74,6 +75,8 @@ class FilterTracker(TrackerBase):
         self._max_gap_ns = round(fo.max_imu_gap_s * 1e9)
         self._matchers = (NoiseMatcher(fo.noise_match_answers, 1), NoiseMatcher(fo.noise_match_answers, 3)) \
             if fo.match_imu_noise else None
+        self._floor_var = np.array([(fo.answer_floor_rotation_deg * _DEG) ** 2] * 3
+                                   + [fo.answer_floor_translation_m ** 2] * 3)
         self._default_sigma = np.diag([(fo.default_rotation_std_deg * _DEG) ** 2] * 3
                                       + [fo.default_translation_std_m ** 2] * 3)
         self._buf = ImuBuffer(round(o.imu_buffer_s * 1e9))
@@ -292,6 +295,8 @@ class FilterTracker(TrackerBase):
         age_s = (t_imu - self._anchor[0]) * 1e-9
         if status is Status.FINE and o.pia and o.backend_after_init and age_s > o.max_backend_age_s:
             status, detail = Status.TRACKING_LOST, f"no backend pose for {age_s:.1f} s: IMU-only drift"
+        if status is Status.FINE and self._rejected:
+            status, detail = Status.TRACKING_LOST, "doubtful: the last backend pose disagreed with the filter (gated)"
         if status is Status.FINE:
             sigma = self.sigma_px(T_CO, cov)
             if sigma > o.filter.max_sigma_px:
@@ -354,6 +359,9 @@ class FilterTracker(TrackerBase):
         if sigma is None or not fo.use_backend_covariance:
             note = "" if sigma is not None else " (no covariance from the backend: the default used)"
             sigma = self._default_sigma
+        floor = self._floor_var - np.diagonal(sigma)
+        if (floor > 0).any():  # what no backend can know better than the tracker can use (FilterOptions.answer_floor_*)
+            sigma = sigma + np.diag(np.maximum(floor, 0.0))
         tau = self._imu_time(t0)
         buf = self._buf
         if not len(buf) or tau < buf.first_t_ns or (self._anchor is not None and self._base_at(tau) is None):
