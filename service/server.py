@@ -4,7 +4,8 @@
 loads the estimators, turns SERVING, and on SIGTERM turns NOT_SERVING while it keeps serving for
 the drain period (so that an orchestrator's readiness probe fails and traffic moves away before
 the socket closes), then stops taking calls, lets in-flight ones finish within the grace period
-and returns 0. SIGINT, or a second signal, skips the drain. It refuses a port another server
+and returns 0: a call still running then (a decode or a network, which a thread cannot be made to
+stop) is left behind with the process, which exits within drain + grace. SIGINT, or a second signal, skips the drain. It refuses a port another server
 holds (gRPC would share it through SO_REUSEPORT). `BackgroundServer` runs the same server on a
 free loopback port in a thread of its own, for runners, the demo and tests.
 """
@@ -12,15 +13,20 @@ free loopback port in a thread of its own, for runners, the demo and tests.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import fcntl
 import gc
 import json
 import logging
+import os
+import queue
 import signal
 import socket
+import sys
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass
 from typing import Self
 
@@ -43,6 +49,7 @@ DEFAULT_GRACE_S = 5.0
 DEFAULT_DRAIN_S = 5.0
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_WORKERS = 4
+ABANDON_S = 0.5  # after the grace, the time calls get to send their UNAVAILABLE before gRPC cancels them
 
 
 class JsonLogFormatter(logging.Formatter):
@@ -61,7 +68,8 @@ class JsonLogFormatter(logging.Formatter):
 
 def configure_logging(level: str = "INFO") -> None:
     """JSON lines on stderr for everything the process says: Python's warnings go through logging, and OpenCV's
-    own log lines are off (images are decoded with Pillow, which prints nothing, service.request_decoding)."""
+    own log lines are off (images are decoded with Pillow, which prints nothing, service.request_decoding);
+    what other native libraries print, `serve` routes (route_native_stderr)."""
     handler = logging.StreamHandler()
     handler.setFormatter(JsonLogFormatter())
     logging.basicConfig(level=level.upper(), handlers=[handler], force=True)
@@ -74,6 +82,92 @@ def quiet_native_logs() -> None:
     import cv2
 
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+
+
+class EstimatorThreads(Executor):
+    """A fixed pool of daemon threads for the estimators. Why not ThreadPoolExecutor: the interpreter joins its
+    threads at exit, so a server told to stop waited for a long decode or network call (19.6 s where drain +
+    grace was 3 s); daemon threads are left behind with the process, as the calls they ran already were."""
+
+    def __init__(self, workers: int, name: str = "estimator"):
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._lock = threading.Lock()
+        self.busy = 0  # threads inside a call now
+        self._threads = [threading.Thread(target=self._work, name=f"{name}_{i}", daemon=True) for i in range(workers)]
+        for thread in self._threads:
+            thread.start()
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        future: Future = Future()
+        self._queue.put((future, fn, args, kwargs))
+        return future
+
+    def _work(self) -> None:
+        while (item := self._queue.get()) is not None:
+            future, fn, args, kwargs = item
+            if not future.set_running_or_notify_cancel():
+                continue
+            with self._lock:
+                self.busy += 1
+            try:
+                future.set_result(fn(*args, **kwargs))
+            except BaseException as exc:  # noqa: BLE001 - the caller's to see, through the future
+                future.set_exception(exc)
+            finally:
+                with self._lock:
+                    self.busy -= 1
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        """Stop the threads once their queue is done (`cancel_futures`: drop what is queued); `wait`: join them."""
+        if cancel_futures:
+            while True:
+                try:
+                    item = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                if item is not None:
+                    item[0].cancel()
+        for _ in self._threads:
+            self._queue.put(None)
+        if wait:
+            for thread in self._threads:
+                thread.join()
+
+
+NATIVE_LEVELS = {"I": logging.INFO, "W": logging.WARNING, "E": logging.ERROR, "F": logging.CRITICAL}
+
+
+def route_native_stderr() -> None:
+    """Make what native libraries write to file descriptor 2 themselves JSON records too (logger "native").
+
+    gRPC core prints a line per failed TLS handshake, which any client can cause ("I1128 09:28:01.558471 22742
+    ssl_transport_security.cc:2563] Handshake failed ..."; its level is the first letter), and it reads
+    GRPC_VERBOSITY only when it is imported, before any code of ours runs; onnxruntime and others print too.
+    Descriptor 2 becomes a pipe whose lines a thread logs; Python's own sys.stderr, and so the JSON handler,
+    keeps the real one. Only `serve` calls this: it changes the whole process."""
+    real = os.dup(2)
+    read, write = os.pipe()
+    with contextlib.suppress(AttributeError, OSError):  # Linux: room for bursts (64 kB by default)
+        fcntl.fcntl(write, fcntl.F_SETPIPE_SZ, 1 << 20)
+    os.set_blocking(write, False)  # a burst the thread cannot keep up with loses lines, never stalls gRPC's threads
+    os.dup2(write, 2)
+    os.close(write)
+    previous = sys.stderr
+    sys.stderr = open(real, "w", buffering=1, encoding="utf-8", errors="backslashreplace")  # noqa: SIM115 - for good
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, logging.StreamHandler) and handler.stream is previous:
+            handler.setStream(sys.stderr)
+    native = logging.getLogger("native")
+
+    def forward() -> None:
+        with open(read, "rb") as lines:
+            for raw in lines:
+                line = raw.decode("utf-8", "backslashreplace").rstrip()
+                if line:
+                    native.log(NATIVE_LEVELS.get(line[0], logging.WARNING) if line[1:2].isdigit() else logging.WARNING,
+                               line)
+
+    threading.Thread(target=forward, name="native-stderr", daemon=True).start()
 
 
 class PortInUse(OSError):
@@ -105,14 +199,19 @@ class RunningServer:
         await self.health.enter_graceful_shutdown()
 
     async def stop(self, grace_s: float) -> None:
+        """Take no new calls; those in flight get `grace_s` to end, then end UNAVAILABLE (their threads, which
+        cannot be stopped, left behind): the server stops within grace_s + ABANDON_S whatever runs."""
         await self.health.enter_graceful_shutdown()
-        await self.server.stop(grace_s)
+        stopping = asyncio.ensure_future(self.server.stop(grace_s + ABANDON_S))
+        await asyncio.wait([stopping], timeout=grace_s)
+        self.servicer.abandon()
+        await stopping
         if self.metrics_http is not None:
             self.metrics_http.shutdown()
             self.metrics_http.server_close()
 
 
-async def start_server(host: str, port: int, executor: ThreadPoolExecutor,
+async def start_server(host: str, port: int, executor: Executor,
                        max_message_mb: float = DEFAULT_MAX_MESSAGE_MB,
                        hardening: Hardening | None = None) -> RunningServer:
     """Listen on host:port (0 = any free port) with health NOT_SERVING and no estimators yet."""
@@ -189,8 +288,9 @@ async def serve(load_registry: Callable[[], EstimatorRegistry], host: str = DEFA
 
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, on_signal, sig)
-    workers = hardening.workers(workers) if hardening else workers
-    with ThreadPoolExecutor(workers, thread_name_prefix="estimator") as executor:
+    route_native_stderr()
+    executor = EstimatorThreads(hardening.workers(workers) if hardening else workers)
+    try:
         running = await start_server(host, port, executor, max_message_mb, hardening)
         log.info("listening", extra={"address": f"{host}:{running.port}", "max_message_mb": max_message_mb})
         try:
@@ -215,7 +315,9 @@ async def serve(load_registry: Callable[[], EstimatorRegistry], host: str = DEFA
                 pass
         log.info("shutting down", extra={"grace_s": grace_s})
         await running.stop(grace_s)
-    log.info("stopped")
+    finally:
+        executor.shutdown(wait=False, cancel_futures=True)
+    log.info("stopped", extra={"abandoned": executor.busy})  # calls whose threads still ran: left with the process
     return 0
 
 
@@ -248,7 +350,8 @@ class BackgroundServer:
     async def _main(self) -> None:
         self._loop, self._stop = asyncio.get_running_loop(), asyncio.Event()
         workers = self.hardening.workers(self._workers) if self.hardening else self._workers
-        with ThreadPoolExecutor(workers, thread_name_prefix="estimator") as executor:
+        executor = EstimatorThreads(workers)
+        try:
             try:
                 running = await start_server(self._host, self._port, executor, self._max_message_mb, self.hardening)
                 await running.set_registry(self.registry)
@@ -260,6 +363,8 @@ class BackgroundServer:
             self._started.set()
             await self._stop.wait()
             await running.stop(self._grace_s)
+        finally:
+            executor.shutdown()  # in a process that goes on (tests, runners): its calls end before stop() returns
 
     def start(self) -> Self:
         self._thread = threading.Thread(target=asyncio.run, args=(self._main(),), name="flextrack-server", daemon=True)
