@@ -9,15 +9,17 @@ true pose R_true = Exp(d_theta) R, t_true = t + d_t moves them by d_theta x (R X
 2Nx6 Jacobian of the projections w.r.t. (d_theta, d_t) is, per point, D_i [-[R X_O,i]x, I], with D_i
 = d(u, v)/dX (the pinhole's, with the lens distortion; OpenCV's d(u, v)/d tvec). Then
 
-    Sigma = inflation * nu / (nu - 2) * s^2 (J^T J)^-1,   s^2 = max(sum r^2 / nu, floor_px^2),
+    Sigma = inflation * nu / (nu - 2) * s^2 (J^T J)^-1,   s^2 = max(uncut(sum r^2 / nu), floor_px^2),
 
 over the N inliers, nu = 2N - 6 the residuals' degrees of freedom and s^2 the residual variance per
-coordinate. nu / (nu - 2) makes it the covariance of the pose's Student-t posterior: s^2 from a few
+coordinate. `uncut` undoes RANSAC's cut: the inliers are the keypoints whose 2D residual is under
+`ransac_px`, so at noise near the cut their residuals show only part of the noise (2 px noise, 4 px
+cut: 69 %; mean NEES 8.3 without the correction, 5.6 with it; 1 px: 99.7 %, no change). nu / (nu - 2) makes it the covariance of the pose's Student-t posterior: s^2 from a few
 residuals is itself uncertain (for 9 keypoints, nu = 12: a factor 1.2; nu is taken as at least 3,
 so 4 keypoints get a factor 3). `floor_px` (0.3 px): keypoints are never located better than that,
 and a perfect fit must not claim a pose known exactly. `inflation`: what the model leaves out
-(RANSAC's cut of the residuals, linearisation), fitted by `flextrack evaluate nees` on its tuning
-set (docs/estimators.md). e^T Sigma^-1 e is then 6 on average but not chi2(6): it has an F
+(linearisation), fitted by `flextrack evaluate nees` on its tuning set (docs/estimators.md; held-out
+NEES over 0.5-2 px of keypoint noise there). e^T Sigma^-1 e is then 6 on average but not chi2(6): it has an F
 distribution's longer tail (its median is lower, and 8-10 % of answers are above chi2(6)'s 95 %
 quantile rather than 5 %).
 """
@@ -49,11 +51,58 @@ def pose_jacobian(R: np.ndarray, t: np.ndarray, points_O: np.ndarray, K: np.ndar
     return np.concatenate([d_rot, D], axis=2).reshape(-1, 6)
 
 
-def information(J: np.ndarray, residuals: np.ndarray, floor_px: float) -> np.ndarray:
-    """(nu - 2) / nu * J^T J / s^2, s^2 the residual variance per coordinate (nu = 2N - 6 degrees of
-    freedom, at least 3) and at least floor_px^2: the inverse of the pose covariance before inflation."""
+def kept_share_of_variance(a: float) -> float:
+    """E[d^2 | d < c] / E[d^2] for a 2D Gaussian error of sigma per coordinate, a = c^2 / (2 sigma^2): the
+    share of the variance the residuals RANSAC keeps (distance under c) still show (the truncated Rayleigh)."""
+    if a > 50.0:
+        return 1.0
+    e = np.exp(-a)
+    return float((1.0 - (1.0 + a) * e) / (1.0 - e))
+
+
+# The most the correction multiplies the residual variance by: what it is at noise of half the cut (2 px at a
+# 4 px cut), the range checked (docs/estimators.md). Noisier keypoints than that get a covariance too small.
+CUT_CAP = 1.0 / kept_share_of_variance(2.0)
+
+
+def uncut_variance(s2: float, cut_px: float | None) -> float:
+    """The keypoint variance per coordinate behind residual variance `s2` measured on RANSAC's inliers, whose
+    2D residuals are all under `cut_px`: at 2 px noise and a 4 px cut, 13.5 % of the good keypoints are cut and
+    the kept ones show only 69 % of the variance. Solves s2 = sigma^2 * kept_share(cut^2 / (2 sigma^2)) by
+    fixed-point iteration, capped at CUT_CAP times s2: a frame's s2 from 9 keypoints scatters by 40 %, and
+    uncapped, the frames that happen to scatter towards cut^2 / 4 (which no finite sigma gives) would get
+    covariances many times too large."""
+    if cut_px is None or s2 <= 0:
+        return s2
+    sigma2 = s2
+    for _ in range(100):
+        new = min(s2 / kept_share_of_variance(cut_px ** 2 / (2.0 * sigma2)), CUT_CAP * s2)
+        if abs(new - sigma2) <= 1e-9 * sigma2:
+            break
+        sigma2 = new
+    return sigma2
+
+
+def residual_variance(residuals: np.ndarray) -> tuple[float, int]:
+    """(s^2, nu): the residual variance per coordinate of a fit of 6 parameters, and its degrees of freedom
+    (nu = 2N - 6, at least 3)."""
     dof = max(residuals.size - 6, 3)
-    s2 = max(float(np.sum(residuals ** 2)) / dof, floor_px ** 2)
+    return float(np.sum(residuals ** 2)) / dof, dof
+
+
+def near_cut(residuals: np.ndarray, cut_px: float) -> bool:
+    """Whether the residuals say the keypoint noise is above half the cut, where the correction stops
+    (CUT_CAP) and the covariance may be too small."""
+    s2, _ = residual_variance(residuals)
+    return s2 > 0 and uncut_variance(s2, cut_px) >= CUT_CAP * s2 * (1 - 1e-6)
+
+
+def information(J: np.ndarray, residuals: np.ndarray, floor_px: float, cut_px: float | None = None) -> np.ndarray:
+    """(nu - 2) / nu * J^T J / s^2, s^2 the residual variance per coordinate (`residual_variance`), corrected
+    for RANSAC's cut at `cut_px` (`uncut_variance`) and at least floor_px^2: the inverse of the pose
+    covariance before inflation."""
+    s2, dof = residual_variance(residuals)
+    s2 = max(uncut_variance(s2, cut_px), floor_px ** 2)
     return (dof - 2) / dof * (J.T @ J) / s2
 
 
@@ -121,7 +170,7 @@ class PnpEstimator(Estimator):
         if T_CO[2, 3] <= 0:
             return EstimateOutput.not_found("pnp put the object behind the camera")
         J = pose_jacobian(T_CO[:3, :3], T_CO[:3, 3], points_3d[idx], K, dist)
-        info = information(J, residuals, self.floor_px)
+        info = information(J, residuals, self.floor_px, self.ransac_px)
         try:
             degenerate = not np.all(np.isfinite(info)) or np.linalg.cond(info) > 1e12
         except np.linalg.LinAlgError:
@@ -129,5 +178,8 @@ class PnpEstimator(Estimator):
         if degenerate:
             return EstimateOutput.not_found("pnp's keypoints do not fix the pose (degenerate layout)")
         confidence = len(idx) / len(points_3d) * float(np.exp(-0.5 * (rms / self.sigma_px) ** 2))
+        message = (f"keypoint noise above half of ransac_px ({self.ransac_px:g} px), past the range where the "
+                   "covariance is checked: it may be too small (raise ransac_px)"
+                   if near_cut(residuals, self.ransac_px) else "")
         return EstimateOutput(Status.OK, T_CO, confidence, covariance=covariance(info, self.inflation),
-                              stage_ms={"pnp": (time.perf_counter() - start) * 1e3})
+                              message=message, stage_ms={"pnp": (time.perf_counter() - start) * 1e3})

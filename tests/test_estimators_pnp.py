@@ -65,3 +65,36 @@ def test_bad_input_raises_invalid_input(objects):
         pnp.estimate(EstimateInput(1, 0, keypoints=kp))
     with pytest.raises(UnknownObject, match="cup"):
         pnp.estimate(EstimateInput(1, 0, "cup", camera=camera, keypoints=kp))
+
+
+def test_the_cut_correction_recovers_the_noise_behind_ransacs_inliers():
+    """Residuals of 2 px per coordinate cut at 4 px (RANSAC's threshold on the 2D distance): the kept ones show
+    about 69 % of the variance; `uncut_variance` gives the 2 px back. Far from the cut nothing changes; past
+    half the cut the correction stops at CUT_CAP."""
+    from estimators.pnp import CUT_CAP, kept_share_of_variance, uncut_variance
+
+    rng = np.random.default_rng(0)
+    for sigma, cut in ((2.0, 4.0), (1.0, 4.0), (1.5, 4.0)):  # up to half the cut: past it the cap holds
+        d = rng.normal(scale=sigma, size=(400_000, 2))
+        kept = d[np.hypot(d[:, 0], d[:, 1]) < cut]
+        s2 = float(np.mean(kept ** 2))  # per coordinate, what the inliers show
+        assert s2 / sigma ** 2 == pytest.approx(kept_share_of_variance(cut ** 2 / (2 * sigma ** 2)), rel=0.01)
+        assert uncut_variance(s2, cut) == pytest.approx(sigma ** 2, rel=0.02)
+    assert kept_share_of_variance(2.0) == pytest.approx(0.687, abs=1e-3)
+    assert uncut_variance(0.5, 40.0) == pytest.approx(0.5, rel=1e-9) and uncut_variance(0.5, None) == 0.5
+    assert CUT_CAP == pytest.approx(1 / 0.687, abs=1e-2)  # the correction at noise of half the cut
+    assert uncut_variance(3.5, 4.0) == CUT_CAP * 3.5  # near the whole cut's spread: capped, not unbounded
+
+
+def test_an_answer_from_keypoints_noisier_than_half_the_cut_says_its_covariance_may_be_too_small(objects):
+    camera = PinholeCamera.linemod()
+    kp = keypoints(objects, camera)
+    rng = np.random.default_rng(4)
+    messages = {}
+    for noise in (0.3, 3.0):
+        est = PnpEstimator(objects, ransac_px=4.0)
+        noisy = kp.copy()
+        noisy[:, 1:] += rng.normal(scale=noise, size=(len(kp), 2))
+        out = est.estimate(EstimateInput(frame_id=0, capture_time_ns=0, camera=camera, keypoints=noisy))
+        messages[noise] = out.message if out.status == Status.OK else "not found"
+    assert messages[0.3] == "" and "ransac_px" in messages[3.0]
