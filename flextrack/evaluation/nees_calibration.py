@@ -182,7 +182,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("pnp (the default object's keypoints projected at random poses, noisy)")
     g.add_argument("--pnp-answers", type=int, default=1000, help="held-out solves")
     g.add_argument("--pnp-tune-answers", type=int, default=4000, help="tuning solves")
-    g.add_argument("--pnp-noise-px", type=float, default=1.0, help="keypoint noise per coordinate, px")
+    g.add_argument("--pnp-noise-px", type=float, nargs="+", default=[1.0],
+                   help="keypoint noise per coordinate, px; several values: one pnp entry each, named by its noise")
     g.add_argument("--pnp-outliers", type=float, default=0.3, help="share of frames with one keypoint 15-60 px off")
     g = parser.add_argument_group("pvnet (rendered frames of the default object, `flextrack train pvnet-eval`'s)")
     g.add_argument("--pvnet-frames", type=int, default=200, help="frames per set")
@@ -206,7 +207,8 @@ def argument_problem(args) -> str | None:
         ("--pnp-tune-answers", args.pnp_tune_answers, 1, many, True),
         ("--pvnet-frames", args.pvnet_frames, 1, many, True), ("--max-2d-px", args.max_2d_px, 0, 1e6),
         ("--noise-t-m", args.noise_t_m, 0, 10, True), ("--noise-r-deg", args.noise_r_deg, 0, 180, True),
-        ("--pnp-noise-px", args.pnp_noise_px, 0, 1000, True), ("--pnp-outliers", args.pnp_outliers, 0, 1, True),
+        *(("--pnp-noise-px", x, 0, 1000, True) for x in args.pnp_noise_px),
+        ("--pnp-outliers", args.pnp_outliers, 0, 1, True),
         ("--jpeg", args.jpeg, 0, 100, True)]) or out_folder_problem(args.out)
 
 
@@ -263,7 +265,8 @@ def run(args) -> int:
         if "gt_oracle" in args.estimators:
             entries.append(_gt_oracle(args))
         if "pnp" in args.estimators:
-            entries.append(_pnp(args))
+            entries.extend(_pnp(args, noise, name="pnp" if len(args.pnp_noise_px) == 1 else f"pnp {noise:g} px")
+                           for noise in args.pnp_noise_px)
         if "pvnet" in args.estimators:
             entries.extend(_pvnet(args))
     except (FileNotFoundError, ValueError) as exc:
@@ -308,16 +311,17 @@ def _gt_oracle(args) -> dict:
                             "sequence": f"{args.oracle_motion} {args.oracle_level}"})
 
 
-def _pnp(args) -> dict:
+def _pnp(args, noise_px: float, name: str = "pnp") -> dict:
     from estimators.objects import ObjectRegistry
     from estimators.pnp import PnpEstimator
 
     obj = _default_object()
     estimator = PnpEstimator(ObjectRegistry([obj]))
-    kw = {"noise_px": args.pnp_noise_px, "outlier_share": args.pnp_outliers, "estimator": estimator, "obj": obj}
-    return _entry("pnp", pnp_answers(args.pnp_tune_answers, args.tune_seed, **kw),
+    kw = {"noise_px": noise_px, "outlier_share": args.pnp_outliers, "estimator": estimator, "obj": obj}
+    return _entry(name, pnp_answers(args.pnp_tune_answers, args.tune_seed, **kw),
                   pnp_answers(args.pnp_answers, args.seed, **kw), estimator.inflation, args.max_2d_px,
-                  settings={"noise_px": args.pnp_noise_px, "outlier_share": args.pnp_outliers, "keypoints": len(obj.keypoints)})
+                  settings={"noise_px": noise_px, "outlier_share": args.pnp_outliers, "keypoints": len(obj.keypoints),
+                            "ransac_px": estimator.ransac_px})
 
 
 def _pvnet(args) -> list[dict]:
