@@ -110,7 +110,8 @@ class ContourRefiner:
         pts = (c[pick] + 0.5) / OVERSAMPLE + lo
         normal = normal[pick]
         # 3D point under each contour point: its ray at the depth of the nearest projected vertex
-        _, nearest = cKDTree(uv).query(pts)
+        # (an unbalanced tree with big leaves: the same nearest vertices, built in half the time, for one query)
+        _, nearest = cKDTree(uv, leafsize=64, balanced_tree=False, compact_nodes=False).query(pts)
         z = cam[nearest, 2]
         rays = np.column_stack([(pts - K[:2, 2]) / np.array([K[0, 0], K[1, 1]]), np.ones(len(pts))])
         points_O = (rays * z[:, None] - t) @ R

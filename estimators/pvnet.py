@@ -28,6 +28,7 @@ and loading refuses a model whose keypoints differ from the object's registered 
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import dataclass, replace
 from dataclasses import fields as dataclass_fields
@@ -60,12 +61,17 @@ class PvnetOptions:
     zoom_size: int = 128  # that crop's side, network input px
     zoom_object_px: float = 64.0  # the object's box width in the crop
     full_resolution_search: bool = True  # look again at full resolution for objects that look small
+    search_px: int = 320 * 240  # the whole-frame search's network input has at most this many pixels (a frame
+    full_search_px: int = 640 * 480  # larger is reduced more), the far-object search's at most this many: any frame
+    # shape then costs at most what a 640x480 one does, in CPU and memory (docs/pvnet.md)
     near_box_px: float = 50.0  # "small": a box under this many frame px
     candidates: int = 3  # mask components tried
     candidate_share: float = 0.25  # a component smaller than this share of the largest is not tried
     min_confidence: float = 0.1  # no pose under this confidence
     rotations: int = 4  # 1: the crop as it is; 4: also turned by 90, 180 and 270 degrees
     turn_margin: float = 1.5  # a turned candidate must beat the upright one by this factor
+    turn_below: float = 0.5  # with rotations 4: the turned crops run only where the upright crops' best pose has a
+    # confidence under this (or none); 1.01: always
     hypotheses: int = 64  # RANSAC voting hypotheses per keypoint
     cos_threshold: float = 0.99  # a pixel votes for a hypothesis within this cosine
     ransac_px: float = 8.0  # PnP's RANSAC reprojection threshold
@@ -96,6 +102,11 @@ def _providers(device: str) -> list[str]:
     available = ort.get_available_providers()
     wanted = ["CPUExecutionProvider"] if device == "cpu" else ["CUDAExecutionProvider", "CPUExecutionProvider"]
     return [p for p in wanted if p in available]
+
+
+def _factor(h: int, w: int, least: int, max_px: int) -> int:
+    """The smallest integer reduction, at least `least`, that brings an h x w frame within max_px pixels."""
+    return max(least, math.ceil(math.sqrt(h * w / max_px)))
 
 
 def _components(mask: np.ndarray, count: int, min_px: int) -> list[np.ndarray]:
@@ -139,7 +150,16 @@ class PvnetEstimator(Estimator):
         if not model_path.is_file():
             raise FileNotFoundError(f"estimator '{name}': ONNX model {model_path} not found "
                                     f"(train one with `flextrack train pvnet`)")
+        if min(o.search_px, o.full_search_px) < 64 * 64:
+            raise ValueError(f"estimator '{name}': search_px and full_search_px must be at least 4096 (64x64)")
         session_options = ort.SessionOptions()
+        # No memory arena and no memory pattern: onnxruntime keeps both per input shape, and frames of several
+        # shapes (or crops) made the server hold GBs; without them each run allocates and frees its own.
+        session_options.enable_cpu_mem_arena = False
+        session_options.enable_mem_pattern = False
+        # Idle intra-op threads sleep instead of spinning: with several worker threads (and other processes) on
+        # the cores, spinning threads burned CPU that the other calls needed.
+        session_options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         if o.threads:
             session_options.intra_op_num_threads = int(o.threads)
         self.session = ort.InferenceSession(str(model_path), session_options, providers=_providers(o.device))
@@ -156,12 +176,13 @@ class PvnetEstimator(Estimator):
         self.min_mask_px = int(o.min_mask_px)
         self.zoom, self.zoom_size, self.zoom_object_px = bool(o.zoom), int(o.zoom_size), float(o.zoom_object_px)
         self.full_resolution_search, self.near_box_px = bool(o.full_resolution_search), float(o.near_box_px)
+        self.search_px, self.full_search_px = int(o.search_px), int(o.full_search_px)
         self.candidates, self.candidate_share = int(o.candidates), float(o.candidate_share)
         self.min_confidence = float(o.min_confidence)
         if o.rotations not in (1, 4):
             raise ValueError(f"estimator '{name}': rotations must be 1 (the crop as it is) or 4 (also turned by 90, "
                              f"180 and 270 degrees), got {o.rotations}")
-        self.rotations, self.turn_margin = int(o.rotations), float(o.turn_margin)
+        self.rotations, self.turn_margin, self.turn_below = int(o.rotations), float(o.turn_margin), float(o.turn_below)
         if self.turn_margin < 1:
             raise ValueError(f"estimator '{name}': turn_margin must be >= 1, got {o.turn_margin}")
         self.voting = VotingConfig(hypotheses=int(o.hypotheses), cos_threshold=float(o.cos_threshold))
@@ -194,15 +215,17 @@ class PvnetEstimator(Estimator):
         x = np.stack(images).astype(np.float32).transpose(0, 3, 1, 2) / np.float32(255.0)
         return self.session.run(None, {"image": np.ascontiguousarray(x)})[0]
 
-    def _zoom_crop(self, image: np.ndarray, half: np.ndarray, box: tuple[float, float, float, float]):
-        """A square crop around the box, scaled so the object is about zoom_object_px wide.
+    def _zoom_crop(self, image: np.ndarray, reduced: np.ndarray, factor: int, box: tuple[float, float, float, float]):
+        """A square crop around the box, scaled so the object is about zoom_object_px wide: from the frame, or
+        from its copy reduced by `factor` (area averaging) where that has enough pixels (less aliasing).
 
         Returns the crop and (scale, offset) such that frame point u = crop point / scale + offset.
         """
         x0, y0, x1, y1 = box
         side = max(x1 - x0, y1 - y0, 8.0)
         scale = self.zoom_object_px / side  # crop px per frame px
-        source, src_scale, src_shift = (image, 1.0, 0.0) if scale > 0.75 else (half, 0.5, -0.25)
+        source, src_scale, src_shift = (image, 1.0, 0.0) if scale * factor > 1.5 else \
+            (reduced, 1.0 / factor, (1.0 / factor - 1.0) / 2)
         s = scale / src_scale  # crop px per source px (source u_s = src_scale * u + src_shift)
         c_src = src_scale * np.array([(x0 + x1) / 2, (y0 + y1) / 2]) + src_shift
         M = np.array([[s, 0.0, (self.zoom_size - 1) / 2 - s * c_src[0]],
@@ -250,6 +273,13 @@ class PvnetEstimator(Estimator):
                 results[i] = out
         return results
 
+    @staticmethod
+    def _reduce(images: list[np.ndarray], factor: int) -> list[np.ndarray]:
+        if factor == 1:
+            return images
+        h, w = images[0].shape[:2]
+        return [cv2.resize(im, (w // factor, h // factor), interpolation=cv2.INTER_AREA) for im in images]
+
     def _locate(self, outs: np.ndarray, factor: int) -> list[list]:
         """Per output, the candidate objects, largest first: (pixels (N, 2) and box in frame px, vectors (N, K, 2))."""
         stride = factor * self.output_stride  # frame px per output cell
@@ -271,32 +301,50 @@ class PvnetEstimator(Estimator):
         t0 = time.perf_counter()
         # Whole-frame search: the halved frame finds near objects; where its largest candidate is
         # missing or small (box side under `near_box_px` of the halved frame) the full-resolution
-        # frame is searched too, where far objects have the sizes the network mostly saw.
-        scale = self.input_scale
-        halves = [cv2.resize(im, (w // scale, h // scale), interpolation=cv2.INTER_AREA) for im in images]
-        found = self._locate(self._run(halves), scale)
+        # frame is searched too, where far objects have the sizes the network mostly saw. A frame
+        # larger than 640x480 is reduced further for both (search_px, full_search_px).
+        factor = _factor(h, w, self.input_scale, self.search_px)
+        halves = self._reduce(images, factor)
+        found = self._locate(self._run(halves), factor)
         side = lambda box: max(box[2] - box[0], box[3] - box[1])
-        small = [i for i, f in enumerate(found) if not f or side(f[0][2]) < self.near_box_px * scale]
+        small = [i for i, f in enumerate(found) if not f or side(f[0][2]) < self.near_box_px * self.input_scale]
         if self.full_resolution_search and small:
-            for i, f in zip(small, self._locate(self._run([images[i] for i in small]), 1)):
+            full = _factor(h, w, 1, self.full_search_px)
+            for i, f in zip(small, self._locate(self._run(self._reduce([images[i] for i in small], full)), full)):
                 found[i] = f or found[i]
         # A candidate far smaller than the largest is a blob of false mask (a table leg), and its few
         # consistent votes can give a confident-looking pose: only those near the largest's size go on.
         found = [[c for c in f if len(c[0]) >= self.candidate_share * len(f[0][0])] for f in found]
-        if self.zoom and any(found):
-            fields = self._crop_fields(images, halves, found)
-        else:  # per frame, the fields voted on, with the turn they were seen in
+        if not (self.zoom and any(found)):  # per frame, the fields voted on, with the turn they were seen in
             fields = [[(c[0], c[1], 0) for c in f] for f in found]
-        inference_ms = (time.perf_counter() - t0) * 1e3 / n
-        return [self._solve(inp, cands, inference_ms) for inp, cands in zip(inputs, fields)]
+            inference_ms = (time.perf_counter() - t0) * 1e3 / n
+            return [self._solve(inp, self._select(inp, cands), inference_ms) for inp, cands in zip(inputs, fields)]
+        # The crop pass, upright; turned (rotations 4) only for frames whose upright crops gave no confident pose:
+        # a device held about upright, the common case, costs one crop a candidate instead of four.
+        fields = self._crop_fields(images, halves, factor, found, (0,), fallback=True)
+        t1 = time.perf_counter()
+        picks = [self._select(inp, cands) for inp, cands in zip(inputs, fields)]
+        selecting = time.perf_counter() - t1
+        if self.rotations == 4:
+            redo = [i for i, (best, _, _) in enumerate(picks) if found[i] and (
+                best.status != Status.OK or best.confidence < self.turn_below)]
+            if redo:
+                turned = self._crop_fields([images[i] for i in redo], [halves[i] for i in redo], factor,
+                                           [found[i] for i in redo], (1, 2, 3), fallback=False)
+                for i, more in zip(redo, turned):
+                    if more:
+                        picks[i] = self._select(inputs[i], fields[i] + more)
+        inference_ms = (time.perf_counter() - t0 - selecting) * 1e3 / n
+        return [self._solve(inp, pick, inference_ms) for inp, pick in zip(inputs, picks)]
 
-    def _crop_fields(self, images: list, halves: list, found: list[list]) -> list[list]:
+    def _crop_fields(self, images: list, halves: list, factor: int, found: list[list], turns: tuple[int, ...],
+                     fallback: bool) -> list[list]:
         """Per frame, the fields of the crop pass: one per candidate and turn of its crop, mapped back to
-        frame pixels, with the turn; a candidate whose crop shows no mask in any turn keeps its
-        whole-frame field."""
+        frame pixels, with the turn; with `fallback`, a candidate whose crop shows no mask in these turns
+        keeps its whole-frame field."""
         pairs = [(i, j) for i in range(len(found)) for j in range(len(found[i]))]
-        crops = [self._zoom_crop(images[i], halves[i], found[i][j][2]) for i, j in pairs]
-        turns = [(p, t) for p in range(len(pairs)) for t in range(0, 4, 4 // self.rotations)]
+        crops = [self._zoom_crop(images[i], halves[i], factor, found[i][j][2]) for i, j in pairs]
+        turns = [(p, t) for p in range(len(pairs)) for t in turns]
         zoomed: list[list] = [[] for _ in pairs]
         for (p, t), out in zip(turns, self._run([np.rot90(crops[p][0], t) for p, t in turns])):
             masks = _components(out[0] > 0, 1, self.min_mask_px)
@@ -308,18 +356,17 @@ class PvnetEstimator(Estimator):
                 zoomed[p].append(((pts - off) / scale, vec, t))
         fields: list[list] = [[] for _ in found]
         for p, (i, j) in enumerate(pairs):
-            fields[i] += zoomed[p] or [(found[i][j][0], found[i][j][1], 0)]
+            fields[i] += zoomed[p] or ([(found[i][j][0], found[i][j][1], 0)] if fallback else [])
         return fields
 
-    def _solve(self, inp: EstimateInput, candidates: list, inference_ms: float) -> EstimateOutput:
+    def _select(self, inp: EstimateInput, candidates: list) -> tuple[EstimateOutput, float, float]:
         """Votes and solves each candidate; the most confident pose wins, a turned crop's only by a factor
         `turn_margin`: the network was trained on objects turned at most about 70 deg from upright, and
         in a crop turned further it may still see an upright one, a pose some pixels off with a
         confidence near the right one's. Turns are for views rolled far from upright, where the
-        unturned crop fails."""
+        unturned crop fails. Returns the winner and the voting and PnP milliseconds."""
         if not candidates:
-            return EstimateOutput(Status.OBJECT_NOT_FOUND, message="the object mask is too small or empty",
-                                  stage_ms={"inference": inference_ms})
+            return EstimateOutput(Status.OBJECT_NOT_FOUND, message="the object mask is too small or empty"), 0.0, 0.0
         voting_ms = pnp_ms = 0.0
         best, best_score = None, 0.0
         for pixels, vectors, turn in candidates:
@@ -337,6 +384,11 @@ class PvnetEstimator(Estimator):
             score = out.confidence / (self.turn_margin if turn else 1.0)
             if best is None or (out.status == Status.OK and (best.status != Status.OK or score > best_score)):
                 best, best_score = out, score
+        return best, voting_ms, pnp_ms
+
+    def _solve(self, inp: EstimateInput, pick: tuple[EstimateOutput, float, float], inference_ms: float) -> EstimateOutput:
+        """The selected pose (`_select`), held to min_confidence and refined."""
+        best, voting_ms, pnp_ms = pick
         if best.status == Status.OK and best.confidence < self.min_confidence:
             best = EstimateOutput(Status.OBJECT_NOT_FOUND, message=f"no confident pose (best {best.confidence:.2f} < "
                                   f"min_confidence {self.min_confidence:g})")

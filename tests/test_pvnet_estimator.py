@@ -134,18 +134,18 @@ def test_a_false_blob_far_smaller_than_the_object_is_not_a_candidate(registry, r
     frame = rgb.copy()
     frame[420:465, 10:60] = small
     seen = []
-    solve = pvnet_module.PvnetEstimator._solve
+    select = pvnet_module.PvnetEstimator._select
 
-    def spy(self, inp, candidates, inference_ms):
+    def spy(self, inp, candidates):
         seen.append(len(candidates))
-        return solve(self, inp, candidates, inference_ms)
+        return select(self, inp, candidates)
 
-    pvnet_module.PvnetEstimator._solve = spy
+    pvnet_module.PvnetEstimator._select = spy
     try:
         PvnetEstimator(registry, SHIPPED, candidate_share=0.0, rotations=1).estimate(_input(frame))
         PvnetEstimator(registry, SHIPPED, rotations=1).estimate(_input(frame))
     finally:
-        pvnet_module.PvnetEstimator._solve = solve
+        pvnet_module.PvnetEstimator._select = select
     assert seen[0] >= 2 and seen[1] == 1
 
 
@@ -263,3 +263,22 @@ def test_refinement_can_be_turned_off_and_its_outline_check_refuses(registry, re
     assert out.status == Status.OK and "refine" not in out.stage_ms
     strict = PvnetEstimator(registry, SHIPPED, min_outline_fit=1.01).estimate(_input(rendered[0][0]))
     assert strict.status == Status.OBJECT_NOT_FOUND and "outline" in strict.message and "refine" in strict.stage_ms
+
+
+@pytest.mark.skipif(not SHIPPED.is_file(), reason=f"no shipped model at {SHIPPED}")
+def test_any_frame_shape_runs_the_network_on_inputs_no_larger_than_a_640x480_frame(registry, rendered):
+    """Memory and CPU bounded for any frame: a 2048x2048 frame (within the service's pixel limit) is reduced for
+    both whole-frame searches, and an upright frame's crops are not turned (rotations 4, turn_below)."""
+    import cv2
+
+    rgb, _ = rendered[0]
+    est = PvnetEstimator(registry, SHIPPED)
+    shapes = []
+    run = est._run
+    est._run = lambda images: shapes.append(images[0].shape[:2]) or run(images)
+    est.estimate(_input(rgb))
+    upright = len(shapes)
+    big = cv2.copyMakeBorder(rgb, 0, 2048 - 480, 0, 2048 - 640, cv2.BORDER_REFLECT)
+    est.estimate(_input(big, camera=PinholeCamera(CAMERA.fx, CAMERA.fy, CAMERA.cx, CAMERA.cy, 2048, 2048)))
+    assert shapes[0] == (240, 320) and upright <= 3  # whole-frame search, perhaps the far search, one crop pass
+    assert all(h * w <= 640 * 480 for h, w in shapes) and (256, 256) in shapes

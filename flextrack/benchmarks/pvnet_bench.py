@@ -1,13 +1,19 @@
-"""`flextrack bench pvnet`: per-frame cost of the pvnet estimator on rendered frames.
+"""`flextrack bench pvnet`: per-frame cost of the pvnet estimator on rendered frames, its accuracy on
+the same frames, and its memory over frame shapes.
 
 Frames of the default object in the simulator's room are JPEG-encoded as a client sends them;
-each is decoded as the service decodes it, then estimated. Prints the mean decode, inference,
-voting, PnP and refinement time per frame at batch 1, and frames/s (decode included) per batch size.
+each is decoded as the service decodes it, then estimated. Prints, at batch 1, the mean decode,
+inference, voting, PnP and refinement time per frame (wall), the process's CPU time a frame, and
+the accuracy (found, 2D error under 5 px, ADD under 10 % of the diameter): for whole frames (a
+first pose, or after a loss) and for the crops the SDK sends once it tracks (client_sdk.crop, around
+the true pose with a 1 deg / 5 mm prior covariance); then frames/s (decode included) per batch size.
+`--memory` prints the resident memory after frames of 640x480, 1280x960 and 2048x2048 instead.
 """
 
 from __future__ import annotations
 
 import argparse
+import resource
 import time
 from pathlib import Path
 
@@ -16,6 +22,8 @@ import numpy as np
 from flextrack import assets
 
 DEFAULT_MODEL = assets.pvnet_model_path()
+PRIOR_STD_DEG, PRIOR_STD_M = 1.0, 0.005  # the prior the crops are cut for: about a tracking filter's
+SHAPES = ((640, 480), (1280, 960), (2048, 2048), (1280, 960), (2048, 2048))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -25,56 +33,130 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeats", type=int, default=2, help="passes over the frames per batch size")
     parser.add_argument("--threads", type=int, default=0, help="onnxruntime intra-op threads (0: its default)")
     parser.add_argument("--device", default="auto", choices=["auto", "cpu"], help="auto: CUDA when present")
+    parser.add_argument("--memory", action="store_true",
+                        help="print the resident memory after frames of 640x480, 1280x960 and 2048x2048 instead")
 
 
 def _frames(n: int):
-    from flextrack.geometry.camera import PinholeCamera
+    """(whole-frame image, its crop's image and Crop, T_gt) per rendered frame, JPEG 90 4:4:4 as the device sends."""
+    from client_sdk.crop import crop_rect
+    from flextrack import wire
+    from flextrack.geometry.camera import PinholeCamera, bbox_corners
     from flextrack.runners.payload import frame_jpeg
     from flextrack.training.evaluate import rendered_frames
     from flextrack.v1 import pose_estimation_pb2 as pb
 
+    corners = bbox_corners(_object().vertices)
+    prior_cov = wire.diagonal_covariance(np.radians(PRIOR_STD_DEG), PRIOR_STD_M)
+    camera = PinholeCamera.linemod()  # rendered_frames' camera
     out = []
-    for _, rgb, camera, _, _ in rendered_frames(assets.default_object_model(), n, seed=7, scenes=1):
-        out.append(pb.Image(encoding=pb.Image.JPEG, data=frame_jpeg(rgb, 90), width=rgb.shape[1], height=rgb.shape[0]))
-    return out, PinholeCamera.linemod()
+    for _, rgb, _, T_gt, _ in rendered_frames(assets.default_object_model(), n, seed=7, scenes=1):
+        whole = pb.Image(encoding=pb.Image.JPEG, data=frame_jpeg(rgb, 90), width=rgb.shape[1], height=rgb.shape[0])
+        rect = crop_rect(camera, corners, T_gt, prior_cov) or (0, 0, camera.width, camera.height)
+        x, y, w, h = rect
+        cut = pb.Image(encoding=pb.Image.JPEG, data=frame_jpeg(rgb[y:y + h, x:x + w], 90), width=w, height=h)
+        out.append((whole, cut, pb.Crop(x=x, y=y, width=w, height=h), T_gt))
+    return out, camera
+
+
+def _object():
+    from estimators.objects import load_object
+
+    return load_object("default", assets.default_object_model())
+
+
+def _rss_mb() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * resource.getpagesize() / 2 ** 20
+
+
+def _memory(estimator, frames, camera) -> int:
+    """RSS after frames of each shape: the 640x480 frame padded (reflected) to the shape, the camera kept."""
+    import cv2
+
+    from estimators.base import EstimateInput
+    from flextrack.geometry.camera import PinholeCamera
+    from service.request_decoding import decode_image
+
+    rgb = decode_image(frames[0][0], camera)
+    estimator.estimate(EstimateInput(frame_id=0, capture_time_ns=0, camera=camera, image=rgb))
+    base = _rss_mb()
+    print(f"RSS after one 640x480 frame: {base:.0f} MB")
+    for i, (w, h) in enumerate(SHAPES):
+        big = cv2.copyMakeBorder(rgb, 0, h - rgb.shape[0], 0, w - rgb.shape[1], cv2.BORDER_REFLECT)
+        cam = PinholeCamera(camera.fx, camera.fy, camera.cx, camera.cy, w, h)
+        t = time.process_time()
+        out = estimator.estimate(EstimateInput(frame_id=i, capture_time_ns=0, camera=cam, image=big))
+        print(f"after a {w}x{h} frame ({out.status.name}, {(time.process_time() - t) * 1e3:.0f} ms CPU): RSS "
+              f"{_rss_mb():.0f} MB ({_rss_mb() - base:+.0f} MB)")
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"peak RSS {peak:.0f} MB; RSS {_rss_mb() - base:+.0f} MB over the one 640x480 frame")
+    return 0
+
+
+def _batch1(estimator, obj, frames, camera, cropped: bool) -> None:
+    """The batch-1 stage times, CPU a frame and accuracy over the frames, whole or as the SDK's crops."""
+    from estimators.base import EstimateInput, Status
+    from flextrack.geometry import metrics
+    from flextrack.v1 import pose_estimation_pb2 as pb
+    from service.request_decoding import decode_crop, decode_image
+
+    stages = {"decode": [], "inference": [], "voting": [], "pnp": [], "refine": []}
+    proj, add, sizes, cpu = [], [], [], 0.0
+    for i, (whole, cut, crop, T_gt) in enumerate(frames):
+        c0, t = time.process_time(), time.perf_counter()
+        image = cut if cropped else whole
+        cam = decode_crop(pb.EstimateRequest(image=cut, crop=crop), camera, np.zeros((0, 3)))[0] if cropped else camera
+        rgb = decode_image(image, cam)
+        stages["decode"].append((time.perf_counter() - t) * 1e3)
+        out = estimator.estimate(EstimateInput(frame_id=i, capture_time_ns=0, camera=cam, image=rgb))
+        cpu += time.process_time() - c0
+        sizes.append(len(image.data))
+        for key in ("inference", "voting", "pnp", "refine"):
+            stages[key].append(out.stage_ms.get(key, 0.0))
+        ok = out.status == Status.OK
+        proj.append(metrics.proj_px(out.T_CO, T_gt, camera, obj.vertices) if ok else np.inf)
+        add.append(metrics.add_m(out.T_CO, T_gt, obj.vertices) if ok else np.inf)
+    total = sum(np.mean(v) for v in stages.values())
+    n = len(frames)
+    what = "crops as the SDK sends them" if cropped else "whole 640x480 frames"
+    print(f"batch 1, {what} (median {np.median(sizes) / 1024:.1f} kB), mean ms per frame: "
+          + ", ".join(f"{k} {np.mean(v):.2f}" for k, v in stages.items()) + f", sum {total:.2f}; "
+          f"CPU {cpu / n * 1e3:.1f} ms a frame; accuracy: found {np.isfinite(proj).sum()}/{n}, "
+          f"2D < 5 px {100 * np.mean(np.array(proj) < 5):.0f} %, "
+          f"ADD < 10 % of the diameter {100 * np.mean(np.array(add) < 0.1 * obj.diameter_m):.0f} %")
 
 
 def run(args) -> int:
     from estimators.base import EstimateInput
-    from estimators.objects import ObjectRegistry, load_object
+    from estimators.objects import ObjectRegistry
     from estimators.pvnet import PvnetEstimator
     from service.request_decoding import decode_image
 
     if not args.model.is_file():
         print(f"bench pvnet: model {args.model} not found (train one with `flextrack train pvnet`)")
         return 2
-    registry = ObjectRegistry([load_object("default", assets.default_object_model())])
-    estimator = PvnetEstimator(registry, args.model, device=args.device, threads=args.threads)
-    images, camera = _frames(args.frames)
-    print(f"pvnet bench: {args.model} on {estimator.providers[0]}, {len(images)} rendered 640x480 JPEG frames")
+    obj = _object()
+    estimator = PvnetEstimator(ObjectRegistry([obj]), args.model, device=args.device, threads=args.threads)
+    frames, camera = _frames(args.frames)
+    if args.memory:
+        return _memory(estimator, frames, camera)
+    print(f"pvnet bench: {args.model} on {estimator.providers[0]}, {len(frames)} rendered 640x480 frames "
+          f"(JPEG 90, 4:4:4)")
 
     def decode(i):
-        t = time.perf_counter()
-        rgb = decode_image(images[i % len(images)], camera)
-        return EstimateInput(frame_id=i, capture_time_ns=0, camera=camera, image=rgb), (time.perf_counter() - t) * 1e3
+        return EstimateInput(frame_id=i, capture_time_ns=0, camera=camera,
+                             image=decode_image(frames[i % len(frames)][0], camera))
 
-    estimator.estimate(decode(0)[0])  # warm-up
-    stages = {"decode": [], "inference": [], "voting": [], "pnp": [], "refine": []}
-    for i in range(len(images)):
-        inp, ms = decode(i)
-        out = estimator.estimate(inp)
-        stages["decode"].append(ms)
-        for key in ("inference", "voting", "pnp", "refine"):
-            stages[key].append(out.stage_ms.get(key, 0.0))
-    total = sum(np.mean(v) for v in stages.values())
-    print("batch 1, mean ms per frame: " + ", ".join(f"{k} {np.mean(v):.2f}" for k, v in stages.items())
-          + f", sum {total:.2f}")
+    estimator.estimate(decode(0))  # warm-up
+    for cropped in (False, True):
+        _batch1(estimator, obj, frames, camera, cropped)
     best = (0, 0.0)
     for b in [int(x) for x in args.batches.split(",")]:
-        n = max(b, args.repeats * len(images) // b * b)
+        n = max(b, args.repeats * len(frames) // b * b)
         t = time.perf_counter()
         for start in range(0, n, b):
-            estimator.estimate_batch([decode(i)[0] for i in range(start, start + b)])
+            estimator.estimate_batch([decode(i) for i in range(start, start + b)])
         fps = n / (time.perf_counter() - t)
         best = max(best, (fps, b))
         print(f"batch {b:>2}: {fps:6.1f} frames/s ({1e3 / fps:.1f} ms per frame, decode included)")
