@@ -415,8 +415,8 @@ def render_pvnet_circular(folder: Path) -> str:
                      f"{r['found']} | **{100 * r['proj_below_5px']:.1f} %** | {100 * add_s:.1f} % | "
                      f"{r['median_proj_px']:.2f} |")
     lines.append(f"| all | | {total} | | **{100 * below / max(total, 1):.1f} %** | | |")
-    return "\n".join([*lines, "", "ADD(-S): ADD-S (BOP's `adi`) for an object whose models_info.json gives symmetries, "
-                      "ADD otherwise; the default object has none, so this column is its ADD.", "", provenance_line(prov, "flextrack train pvnet-eval --model "
+    return "\n".join([*lines, "", ("ADD(-S): ADD-S (BOP's `adi`) for an object whose models_info.json gives "
+                                  "symmetries, ADD otherwise; the default object has none, so this column is its ADD."), "", provenance_line(prov, "flextrack train pvnet-eval --model "
                       "flextrack/assets/models/pvnet_default/pvnet.onnx --bop SEQUENCE --obj-id 1 --jpeg 90 --out OUT")
                       + f" (the last run; every file records its own). Files: `{RESULTS_DIR.as_posix()}/{folder.name}/`."])
 
@@ -446,6 +446,30 @@ def render_nees(folder: Path) -> str:
     return "\n".join([table(data["estimators"], max_px), "",
                       provenance_line(data["provenance"]) + f" Files: `{RESULTS_DIR.as_posix()}/{folder.name}/` "
                       "(`answers.csv`: every held-out answer's NEES, 2D error and error)."])
+
+
+@section("pnp_noise")
+def render_pnp_noise(folder: Path) -> str:
+    """`flextrack evaluate nees --estimators pnp --pnp-noise-px ...`: pnp's held-out NEES by keypoint noise."""
+    data = json.loads((folder / "pnp_noise.json").read_text())
+    prov = data["provenance"]
+    opts = prov.get("options", {})
+    lines = ["| keypoint noise, px | N | mean NEES | 95 % interval (chi2) | median | share > 12.59 | tuning set asks for |",
+             "|---:|---:|---:|---|---:|---:|---:|"]
+    for e in data["estimators"]:
+        s = e["heldout_below_max_2d"]
+        lines.append(f"| {e['settings']['noise_px']:g} | {s['n']} | **{s['mean']:.2f}** | [{s['interval'][0]:.2f}, "
+                     f"{s['interval'][1]:.2f}] | {s['median']:.2f} | {100 * s['share_above_q95']:.1f} % | "
+                     f"{e['fitted_inflation']:.3g} |")
+    noise = " ".join(f"{x:g}" for x in opts.get("pnp_noise_px", []))
+    ransac = data["estimators"][0]["settings"].get("ransac_px")
+    return "\n".join([
+        (f"The default object's 9 keypoints at random poses, {100 * opts.get('pnp_outliers', 0):.0f} % of the frames "
+         f"with one keypoint 15-60 px off, `ransac_px` {ransac:g}; held-out seed {opts.get('seed')}, the inflation's "
+         f"tuning seed {opts.get('tune_seed')} (the last column: the factor that set would ask for; 1 is stored)."),
+        "", *lines, "",
+        provenance_line(prov, f"flextrack evaluate nees --estimators pnp --pnp-noise-px {noise} --out out/pnp_noise")
+        + f" Files: `{RESULTS_DIR.as_posix()}/{folder.name}/`."])
 
 
 @section("timing")
