@@ -34,7 +34,6 @@ from flextrack.geometry import metrics
 from flextrack.geometry.camera import PinholeCamera
 
 METRIC_POINTS = 1000
-SCORE_BATCH = 256  # rows scored at once (their temporaries: ~6 MB with METRIC_POINTS)
 
 
 def metric_points(vertices_O: np.ndarray, max_points: int = METRIC_POINTS) -> np.ndarray:
@@ -190,8 +189,8 @@ class TrackRecord:
         return [r for r in self.rows if r.T_CO is not None and r.T_gt is not None]
 
     def _score_pending(self) -> None:
-        while self._unscored:  # SCORE_BATCH rows at a time: the projections of 2048 rows took 50 MB at once
-            pending, self._unscored = self._unscored[:SCORE_BATCH], self._unscored[SCORE_BATCH:]
+        if self._unscored:
+            pending, self._unscored = self._unscored, []
             previous = self._last_error[1] if self._last_error is not None and self._follows(self._last_error[0],
                                                                                              pending[0]) else None
             proj, jitter, last = metrics.proj_and_jitter_many(
