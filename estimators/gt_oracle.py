@@ -40,8 +40,8 @@ class _GroundTruth:
     camera: PinholeCamera
 
 
-def _ground_truth(root: Path) -> _GroundTruth:
-    seq = sequence_io.load(root)
+def _ground_truth(source: Path | sequence_io.Sequence) -> _GroundTruth:
+    seq = source if isinstance(source, sequence_io.Sequence) else sequence_io.load(source)
     poses = np.full((len(seq.frame_ids), 4, 4), np.nan)
     for i, frame_id in enumerate(seq.frame_ids):
         if int(frame_id) in seq.gt_T_CO:
@@ -100,11 +100,12 @@ class GtOracleEstimator(Estimator):
                    p.get("noise_r_deg", 0.0), p.get("seed", 0), p.get("floor_r_deg", FLOOR_R_DEG),
                    p.get("floor_t_m", FLOOR_T_M))
 
-    def add_sequence(self, path: str | Path, name: str | None = None) -> str:
-        """Load (or reload) a sequence folder; requests name it by `name`, default the folder's name."""
-        path = Path(path)
-        name = name or path.name
-        self._sequences[name] = _ground_truth(path)
+    def add_sequence(self, path: str | Path | sequence_io.Sequence, name: str | None = None) -> str:
+        """Load (or reload) a sequence folder, or take one a runner already loaded (with its whole ground truth,
+        so that a run parses its folder once); requests name it by `name`, default the folder's name."""
+        source = path if isinstance(path, sequence_io.Sequence) else Path(path)
+        name = name or source.name
+        self._sequences[name] = _ground_truth(source)
         return name
 
     @property

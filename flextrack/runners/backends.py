@@ -22,6 +22,7 @@ from client_sdk.interceptor import LatencyInterceptor
 from client_sdk.network_model import LinkDelays, NetworkOptions
 from estimators.gt_oracle import GtOracleEstimator
 from estimators.registry import EstimatorRegistry
+from flextrack.formats.sequence import Sequence
 from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
 from service.estimation import EstimationService
@@ -32,13 +33,17 @@ NOISY_R_DEG = 0.3
 ORACLE_BACKENDS = ("gt", "noisy")
 
 
-def oracle_registry(sequence_roots: list[Path], noise_seed: int = 0) -> EstimatorRegistry:
-    """Estimators "gt" (exact) and "noisy" (3 mm, 0.3 deg per axis) over the given sequences."""
-    roots = [Path(r) for r in sequence_roots]
-    return EstimatorRegistry([
-        GtOracleEstimator("gt", roots),
-        GtOracleEstimator("noisy", roots, noise_t_m=NOISY_T_M, noise_r_deg=NOISY_R_DEG, seed=noise_seed),
-    ], default="gt")
+def oracle_registry(sequence_roots: list, noise_seed: int = 0) -> EstimatorRegistry:
+    """Estimators "gt" (exact) and "noisy" (3 mm, 0.3 deg per axis) over the given sequences: folders (or
+    folders of them), or sequences already loaded (`Sequence`, with their whole ground truth: not parsed again)."""
+    loaded = [s for s in sequence_roots if isinstance(s, Sequence)]
+    roots = [Path(r) for r in sequence_roots if not isinstance(r, Sequence)]
+    oracles = [GtOracleEstimator("gt", roots),
+               GtOracleEstimator("noisy", roots, noise_t_m=NOISY_T_M, noise_r_deg=NOISY_R_DEG, seed=noise_seed)]
+    for oracle in oracles:
+        for seq in loaded:
+            oracle.add_sequence(seq)
+    return EstimatorRegistry(oracles, default="gt")
 
 
 def wait_ready(channel: grpc.Channel, address: str, timeout_s: float = 3.0) -> None:

@@ -58,14 +58,16 @@ def at_fps(seq: Sequence, fps: float) -> Sequence:
 
 
 def registry_for(seq: Sequence, spec: RunSpec) -> EstimatorRegistry:
+    """The estimators a run serves: the oracles, or the config's with its oracles given `seq`. `seq` as loaded
+    (its whole ground truth: the oracles answer from it, without parsing the folder again)."""
     if spec.config is None:
-        return oracle_registry([seq.root], noise_seed=spec.seed)
+        return oracle_registry([seq], noise_seed=spec.seed)
     models = load_object_folders(spec.objects)
     registry = EstimatorRegistry.from_config(spec.config, models)
     registry.prepare([m.object_id for m in models])  # as `flextrack serve --objects`: no frame waits for one
     for estimator in registry:
         if isinstance(estimator, GtOracleEstimator):
-            estimator.add_sequence(seq.root, seq.name)
+            estimator.add_sequence(seq, seq.name)
     return registry
 
 

@@ -218,9 +218,8 @@ def run(args) -> int:
     if args.config is None and args.server is None and args.backend not in ORACLES:
         args.config = default_config_path()  # pvnet, region, ...: the estimators `flextrack serve` has
     try:
-        seq = sequence_io.load(args.sequence)
-        if args.fps:
-            seq = session.at_fps(seq, args.fps)
+        loaded = sequence_io.load(args.sequence)  # the one parse of the folder: the oracles answer from it too
+        seq = session.at_fps(loaded, args.fps) if args.fps else loaded
         seq = scoring.in_view_only(seq)  # frames with the object out of view are not scored
         spec = session.RunSpec(
             backend=args.backend, network=network_options(args.network, args.seed), slowdown=args.slowdown,
@@ -228,7 +227,7 @@ def run(args) -> int:
             in_process=args.in_process, config=args.config, server=args.server, objects=tuple(args.objects),
             frames=args.frames or args.backend not in ORACLES)
         options = tracker_options(args)
-        registry = None if args.server else session.registry_for(seq, spec)
+        registry = None if args.server else session.registry_for(loaded, spec)
         kind = estimator_kind(args.backend, registry, args.server)
         if kind is None and registry is not None:
             raise ValueError(f"--backend {args.backend}: unknown estimator; available: {registry.names()} "
