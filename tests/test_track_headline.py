@@ -49,3 +49,17 @@ def test_error_plot_has_gaps_where_nothing_was_scored(tmp_path, monkeypatch):
     assert path.stat().st_size > 10_000
     px = next(np.asarray(a[1], float) for a, k in plotted if k.get("label") == "2D error")
     assert np.isnan(px[3:5]).all() and np.isfinite(px[[0, 1, 2, 5, 6]]).all()  # a gap, not a line across it
+
+
+def test_a_track_run_parses_its_sequence_folder_once(tmp_path, monkeypatch, capsys):
+    """Issue 31 item 10: the runner loads the folder and the oracles answer from that load (was three)."""
+    from flextrack.cli import main
+    from flextrack.formats import sequence as sequence_io
+    from flextrack.testing.toy_sequence import write_orbit_sequence
+
+    seq = write_orbit_sequence(tmp_path / "orbit", frames=30)
+    loads = []
+    original = sequence_io.load
+    monkeypatch.setattr(sequence_io, "load", lambda root: loads.append(root) or original(root))
+    assert main(["track", str(seq.root), "--backend", "noisy", "--no-plots", "--out", str(tmp_path / "o")]) == 0
+    assert len(loads) == 1, loads
