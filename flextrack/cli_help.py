@@ -34,7 +34,7 @@ EXAMPLES: dict[str, list[str]] = {
                       "flextrack convert-euroc --euroc MY_RECORDING --object-distance 1.2 --fps 30 --out out/seq/mine"],
     "track": ["flextrack track out/seq/circ_med --backend noisy --out out/track",
               "flextrack track out/seq/circ_med --backend pvnet --fps 30 --out out/track_pvnet",
-              "flextrack track out/seq/mine --preset paper --set px_error=15 --out out/track_mine",
+              "flextrack track out/seq/mine --tracker paper --set px_error=15 --out out/track_mine",
               ("flextrack track out/seq/circ_med --server 127.0.0.1:50051 --backend pvnet_region --out out/server "
                "# a default `flextrack serve`; its oracles need the folder in sequence_roots")],
     "experiment": ["flextrack experiment table2 --seeds 3 --out out/table2",

@@ -98,3 +98,21 @@ def test_track_without_live_shows_progress(tmp_path, capsys):
     seq = write_orbit_sequence(tmp_path / "orbit", frames=20)
     assert main(["track", str(seq.root), "--no-plots", "--progress-every", "0", "--out", str(tmp_path / "o")]) == 0
     assert "t 0.0/" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name, argv, dest, value", [
+    ("track", ["SEQ", "--out", "o", "--preset", "paper"], "tracker", "paper"),
+    ("experiment", ["euroc", "--out", "o", "--preset", "paper"], "tracker", "paper"),
+    ("bench", ["tracker", "--fusion", "paper"], "tracker", "paper"),
+    ("bench", ["sdk-memory", "--duration-s", "60"], "duration", 60.0),
+])
+def test_one_name_per_concept_and_the_old_names_still_run_saying_so(name, argv, dest, value, capsys):
+    """Issue 31 item 10: --tracker names the tracker everywhere (was --preset, --fusion, --tracker), --duration
+    the length (was also --duration-s); the old names are hidden aliases that say they are deprecated."""
+    parser = command_parser(name, importlib.import_module(COMMANDS[name][0]))
+    args = parser.parse_args(argv)
+    assert getattr(args, dest) == value
+    old = next(a for a in argv if a in ("--preset", "--fusion", "--duration-s"))
+    assert f"{old} is deprecated; use --{dest}" in capsys.readouterr().err
+    help_text = parser.format_help() if name != "bench" else ""
+    assert old not in help_text

@@ -77,7 +77,7 @@ def test_track_scores_only_frames_in_view_and_says_how_many_it_skipped(sequence,
 
 def test_track_that_scores_nothing_exits_non_zero_with_the_reason(sequence, tmp_path, capsys):
     # the paper's method waits for a still window, which this recording has not
-    rc = main(["track", str(sequence), "--backend", "noisy", "--preset", "paper", "--no-plots", "--out", str(tmp_path)])
+    rc = main(["track", str(sequence), "--backend", "noisy", "--tracker", "paper", "--no-plots", "--out", str(tmp_path)])
     assert rc == 1
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "never initialised" in err and "still" in err

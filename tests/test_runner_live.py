@@ -87,7 +87,7 @@ def test_track_cli_writes_results_and_rejects_bad_input(short_seq, tmp_path, cap
     assert main(["track", str(short_seq.root), "--out", str(out), "--backend", "nope", "--no-plots"]) == 2
     assert "unknown estimator" in capsys.readouterr().err
     tuned = ["track", str(short_seq.root), "--out", str(tmp_path / "tuned"), "--backend", "noisy", "--no-plots",
-             "--preset", "paper", "--set", "gravity_follow=0.5", "--set", "pia=false"]
+             "--tracker", "paper", "--set", "gravity_follow=0.5", "--set", "pia=false"]
     assert main(tuned) == 0
     capsys.readouterr()
     filtered = ["track", str(short_seq.root), "--out", str(tmp_path / "filtered"), "--backend", "noisy", "--no-plots",

@@ -23,15 +23,18 @@ from pathlib import Path
 import numpy as np
 
 from flextrack.provenance import of_args
+from flextrack.runners.cli_checks import deprecated_alias
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--duration-s", type=float, default=300.0, help="length of the live run")
+    parser.add_argument("--duration", type=float, default=300.0, help="length of the live run, s")
+    deprecated_alias(parser, "--duration-s", "--duration", type=float)
     parser.add_argument("--fps", type=float, default=60.0, help="camera frame rate")
     parser.add_argument("--sample-s", type=float, default=10.0, help="seconds between two RSS samples")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--fusion", choices=["filter", "paper"], default="filter",
+    parser.add_argument("--tracker", choices=["filter", "paper"], default="filter",
                         help="the tracker core (TrackerOptions.fusion): the error-state filter or the paper's PRM")
+    deprecated_alias(parser, "--fusion", "--tracker", choices=["filter", "paper"])
     parser.add_argument("--runner", choices=["sdk", "track-live"], default="sdk",
                         help="sdk: the SDK alone; track-live: the live runner of `flextrack track --live`, its record "
                              "for scoring included")
@@ -69,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     from flextrack.simulator.generate import generate_sequence
 
     with tempfile.TemporaryDirectory() as tmp:
-        root = generate_sequence("circular", "medium", Path(tmp) / "long", duration_s=args.duration_s,
+        root = generate_sequence("circular", "medium", Path(tmp) / "long", duration_s=args.duration,
                                  fps=args.fps, seed=args.seed)
         seq = sequence_io.load(root)
         _release_free_memory()  # the simulation's temporaries: not the SDK's, out of the baseline
@@ -79,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         server = start_serve(["--config", str(config)])
         try:
             run_device = _device if args.runner == "sdk" else _track_live
-            samples = run_device(seq, server.address, args.sample_s, args.fusion)
+            samples = run_device(seq, server.address, args.sample_s, args.tracker)
         finally:
             server.stop()
     later = [s for s in samples if s["t_s"] >= SETTLE_S]

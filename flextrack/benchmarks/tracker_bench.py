@@ -26,6 +26,7 @@ import numpy as np
 from client_sdk import ResponseOutcome, TrackerOptions, create_tracker
 from flextrack.geometry import se3, so3
 from flextrack.geometry.metrics import proj_px, re_deg, te_mm
+from flextrack.runners.cli_checks import deprecated_alias
 from flextrack.testing.tracker_world import BOX_O, CAMERA, T_BC, Motion, drive
 
 PAPER_MS = {"PIM": 0.35, "PRM": 0.86}
@@ -144,8 +145,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--latency-ms", type=float, default=50.0, help="backend answer delay (IMU re-propagated)")
     parser.add_argument("--integrator", choices=("paper", "midpoint"), default="paper",
                         help="the paper method's integrator (the filter always uses midpoint) (default: %(default)s)")
-    parser.add_argument("--fusion", choices=("filter", "paper"), default="filter",
+    parser.add_argument("--tracker", choices=("filter", "paper"), default="filter",
                         help="tracker core to time (default: %(default)s)")
+    deprecated_alias(parser, "--fusion", "--tracker", choices=("filter", "paper"))
     parser.add_argument("--slowdown", type=float, default=PIXEL2_SLOWDOWN, help="device slowdown factor")
     parser.add_argument("--accuracy", action="store_true",
                         help="print the paper method's accuracy tables (integrators, gains, BSCM) instead of timing")
@@ -169,9 +171,9 @@ def run(args: argparse.Namespace) -> int:
                                              for c in cells) + " |")
         return 0
     times = measure(args.seconds, fps=args.fps, latency_s=args.latency_ms / 1e3, integrator=args.integrator,
-                    fusion=args.fusion)
+                    fusion=args.tracker)
     print(f"tracker core timing: {args.seconds:g} s of IMU at 200 Hz, {args.fps:g} FPS, "
-          f"{args.latency_ms:g} ms backend latency, fusion {args.fusion}, integrator {args.integrator}")
+          f"{args.latency_ms:g} ms backend latency, tracker {args.tracker}, integrator {args.integrator}")
     print(f"| operation | calls | median us | p99 us | median x {args.slowdown:.2f} us | paper (stretched) ms |")
     print("|---|---|---|---|---|---|")
     for r in timing_rows(times, args.slowdown):

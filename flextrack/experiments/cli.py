@@ -16,6 +16,7 @@ from pathlib import Path
 from client_sdk.options import PRESETS
 from flextrack.experiments import paper
 from flextrack.provenance import of_args
+from flextrack.runners.cli_checks import deprecated_alias
 from flextrack.simulator.euroc_cli import xyz
 
 EXPERIMENTS = ("table2", "ablation", "timing", "euroc", "filter", "bound")
@@ -49,12 +50,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "145 = pvnet with its turned crops and outline refinement on this project's 2-core CPU, "
                         "`flextrack bench pvnet`, with some margin)")
     parser.add_argument("--data", type=Path, help="euroc: the EuRoC folder (default ../shared/data/euroc_v1_02_medium)")
-    parser.add_argument("--preset", choices=PRESETS, default=None,
-                        help="euroc: also run this tracker preset, as `flextrack track --preset` (default: only the "
+    parser.add_argument("--tracker", choices=PRESETS, default=None,
+                        help="euroc: also run this tracker, as `flextrack track --tracker` (default: only the "
                         "experiment's own variants full, bscm_off, filter)")
     parser.add_argument("--set", action="append", default=[], metavar="OPTION=VALUE",
                         help="euroc: also run the tracker with this option changed, as `flextrack track --set` "
-                        "(on --preset, default filter; repeatable)")
+                        "(on --tracker, default filter; repeatable)")
+    deprecated_alias(parser, "--preset", "--tracker", choices=PRESETS)
     parser.add_argument("--object-distance", type=float, metavar="M",
                         help="euroc: place the object where the camera looks most at this distance (default: "
                         "convert-euroc's choice)")
@@ -63,14 +65,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def custom_tracker(args):
-    """(label, TrackerOptions) of --preset/--set, or None when neither is given."""
-    if args.preset is None and not args.set:
+    """(label, TrackerOptions) of --tracker/--set, or None when neither is given."""
+    if args.tracker is None and not args.set:
         return None
     from flextrack.runners.track_cli import tracker_options
 
-    flags = argparse.Namespace(preset=args.preset or "filter", set=args.set, no_bscm=False, no_pia=False,
+    flags = argparse.Namespace(tracker=args.tracker or "filter", set=args.set, no_bscm=False, no_pia=False,
                                imu_only=False, integrator=None)
-    return " ".join([f"preset {flags.preset}", *args.set]), tracker_options(flags)
+    return " ".join([f"preset {flags.tracker}", *args.set]), tracker_options(flags)
 
 
 def run(args) -> int:
@@ -99,8 +101,8 @@ def run(args) -> int:
         problem = "--data applies to euroc (the others simulate their sequences)"
     if args.backend != "oracles" and args.experiment != "table2":
         problem = "--backend applies to table2 (the others run the noisy oracle)"
-    if (args.preset or args.set) and args.experiment != "euroc":
-        problem = "--preset and --set apply to euroc (table2, ablation and filter run their own variants)"
+    if (args.tracker or args.set) and args.experiment != "euroc":
+        problem = "--tracker and --set apply to euroc (table2, ablation and filter run their own variants)"
     if args.seeds < 1 or args.seed < 0:
         problem = f"--seeds must be at least 1 and --seed at least 0, got {args.seeds} and {args.seed}"
     problem = numbers_problem([("--duration", args.duration, 0, 3600), ("--backend-ms", args.backend_ms, 0, 60_000, True),

@@ -64,3 +64,18 @@ def numbers_problem(checks) -> str | None:
         if problem:
             return problem
     return None
+
+
+def deprecated_alias(parser, old: str, new: str, **kwargs) -> None:
+    """Accept option `old` for `new` (same destination; `kwargs` as `new`'s: type, choices), hidden from --help,
+    with a line on stderr when used: one name per concept, and yesterday's commands still run."""
+    import argparse
+    import sys
+
+    class Alias(argparse.Action):
+        def __call__(self, parser, namespace, values, option_string=None):
+            print(f"{parser.prog}: {old} is deprecated; use {new}", file=sys.stderr)
+            setattr(namespace, self.dest, values)
+
+    parser.add_argument(old, dest=new.lstrip("-").replace("-", "_"), action=Alias, help=argparse.SUPPRESS,
+                        default=argparse.SUPPRESS, **kwargs)

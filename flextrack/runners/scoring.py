@@ -80,7 +80,7 @@ class Accounting:
         if self.initialising == self.in_view:
             if not self.requests:
                 why = ("it never asked the backend for a first pose: the device was never still for the 0.5 s "
-                       "the paper's initialisation needs (try --preset filter, which starts while moving)")
+                       "the paper's initialisation needs (try --tracker filter, which starts while moving)")
             elif not self.responses:
                 why = (f"the backend answered none of its {self.requests} requests with a pose (the object was out "
                        "of view at those frames, or the estimator does not know this sequence or object)")

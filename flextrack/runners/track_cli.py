@@ -50,11 +50,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--speed", type=float, default=1.0, help="with --live: play the sequence this much faster")
     parser.add_argument("--in-process", action="store_true", help="replay without gRPC (same results)")
     parser.add_argument("--fps", type=float, help="use the sequence's frames nearest to this rate, Hz (default: every frame)")
-    parser.add_argument("--preset", choices=PRESETS, default="filter",
+    parser.add_argument("--tracker", choices=PRESETS, default="filter",
                         help="tracker: filter (the error-state Kalman filter, for every backend) or paper (the "
                         "paper's PRM + BSCM) (default: %(default)s)")
+    cli_checks.deprecated_alias(parser, "--preset", "--tracker", choices=PRESETS)
     parser.add_argument("--set", action="append", default=[], metavar="OPTION=VALUE",
-                        help="override one TrackerOptions field of the preset, e.g. --set px_error=15 or a filter "
+                        help="override one TrackerOptions field of the --tracker's options, e.g. --set px_error=15 or a filter "
                         "option, e.g. --set filter.time_offset_std_s=0 (repeatable; numbers and true/false)")
     parser.add_argument("--no-bscm", action="store_true", help="ablation: no bias self-correction")
     parser.add_argument("--no-pia", action="store_true", help="ablation: no pose inspection")
@@ -110,7 +111,7 @@ def overrides(pairs: list[str]) -> tuple[dict, dict]:
 
 
 def tracker_options(args) -> TrackerOptions:
-    base = preset(args.preset)
+    base = preset(args.tracker)
     flags = replace(base, bscm=not args.no_bscm, pia=not args.no_pia, backend_after_init=not args.imu_only,
                     integrator=args.integrator or base.integrator)
     tracker_set, filter_set = overrides(args.set)
@@ -127,7 +128,7 @@ def argument_problem(args) -> str | None:
         return "--speed plays a --live run faster; add --live, or drop --speed (a replay runs in virtual time)"
     problem = cli_checks.numbers_problem([
         ("--speed", args.speed, 0, 1000), ("--fps", args.fps, 0, 1000), ("--slowdown", args.slowdown, 0, 100),
-        ("--backend-ms", args.backend_ms, 0, 60_000, True), ("--progress-every", args.progress_every, 0, 3600)])
+        ("--backend-ms", args.backend_ms, 0, 60_000, True), ("--progress-every", args.progress_every, 0, 3600, True)])
     if problem:
         return problem
     if args.config is not None and not args.config.is_file():
