@@ -192,9 +192,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--pvnet-seed", type=int, default=20261122, help="held-out frames (pvnet-eval's default)")
     g.add_argument("--jpeg", type=int, default=90, help="JPEG quality the frames are sent at (0: as rendered)")
     g.add_argument("--model", type=Path, help="PVNet ONNX (default: the shipped model)")
-    parser.epilog = ("exit status: 0 when every estimator's held-out mean NEES (answers under --max-2d-px) is inside "
-                     "its 95 % interval; 1 when one is not (each named on stderr: a covariance that claims too much "
-                     "or too little); 2 for a bad argument")
+    parser.description = (parser.description or "") + (
+        ". Exit status: 0 when every estimator's held-out mean NEES (answers under --max-2d-px) is inside its 95 % "
+        "interval; 1 when one is not (each named on stderr: a covariance that claims too much or too little); 2 for "
+        "a bad argument.")
 
 
 def argument_problem(args) -> str | None:

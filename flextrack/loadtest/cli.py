@@ -16,6 +16,10 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = (parser.description or "") + (
+        ". Exit status: 0 when the run got answers, at most half of them errors (--ramp: a client count passed); "
+        "1 when nothing answered, most answers were errors or no --ramp step passed (the reason on stderr); "
+        "2 for a bad argument.")
     parser.add_argument("--target", required=True,
                         help="ADDR[,ADDR...]: host:port of the server; several IPv4 addresses are balanced round_robin")
     parser.add_argument("--clients", type=int, default=10, help="simulated devices (one Track stream each)")
