@@ -142,8 +142,9 @@ def test_a_false_blob_far_smaller_than_the_object_is_not_a_candidate(registry, r
 
     pvnet_module.PvnetEstimator._select = spy
     try:
-        PvnetEstimator(registry, SHIPPED, candidate_share=0.0, rotations=1).estimate(_input(frame))
-        PvnetEstimator(registry, SHIPPED, rotations=1).estimate(_input(frame))
+        # window_px 0: the far search on the whole frame, which sees the blob in its corner
+        PvnetEstimator(registry, SHIPPED, candidate_share=0.0, rotations=1, window_px=0).estimate(_input(frame))
+        PvnetEstimator(registry, SHIPPED, rotations=1, window_px=0).estimate(_input(frame))
     finally:
         pvnet_module.PvnetEstimator._select = select
     assert seen[0] >= 2 and seen[1] == 1
