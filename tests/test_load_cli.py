@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import csv
 import json
+import time
 
 import pytest
 
+from estimators.base import EstimateInput, EstimateOutput, Estimator
 from estimators.gt_oracle import GtOracleEstimator
 from estimators.registry import EstimatorRegistry
 from flextrack.cli import main
@@ -67,6 +69,34 @@ def test_ramp_where_every_answer_fails_exits_non_zero_with_the_reason(oracle, tm
     assert rc == 1 and "errors 100.0% of 3 answers -> fail" in out
     assert err.startswith("flextrack loadtest: no client count passed: 1 clients: 100% of 3 answers were errors")
     assert "no_such_estimator" in err and len(err.strip().splitlines()) == 1
+
+
+class _Slow(Estimator):
+    """Answers after a second: longer than the whole measured window below, however fast the machine."""
+
+    kind, version = "slow", "1"
+
+    def __init__(self):
+        super().__init__("slow", ["obj"])
+
+    def estimate(self, inp: EstimateInput) -> EstimateOutput:
+        time.sleep(1.0)
+        return EstimateOutput.not_found("slow")
+
+
+def test_a_ramp_step_with_no_answers_is_reported_as_such(tmp_path, capsys):
+    """The first request (sent in the warm-up) is answered after the window ended: the step got no answer,
+    which is said so (not as 'errors 100 %'), with no error rate in ramp.csv, and the ramp exits 1."""
+    with BackgroundServer(EstimatorRegistry([_Slow()]), grace_s=0.0) as srv:
+        rc = main(["loadtest", "--target", srv.address, "--ramp", "--clients", "1", "--max-clients", "1",
+                   "--fps", "20", "--payload-kb", "5", "--estimator", "slow", "--warmup", "0.2", "--duration", "0.1",
+                   "--out", str(tmp_path)])
+    out, err = capsys.readouterr()
+    assert rc == 1 and "   1 clients: no answers in " in out and "errors" not in out
+    assert err.startswith("flextrack loadtest: no client count passed: 1 clients: nothing answered at ")
+    with open(tmp_path / "ramp.csv") as f:
+        (row,) = list(csv.DictReader(f))
+    assert row["answered"] == "0" and row["error_rate"] == "" and row["passed"] == "False"
 
 
 def test_round_robin_over_two_addresses_spreads_the_streams(oracle):

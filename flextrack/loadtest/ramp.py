@@ -73,11 +73,12 @@ def write_ramp(steps: list[RampStep], best: int, p99_bound_ms: float, out: str |
                                                                         clients=[s.clients for s in steps])}, indent=2))
     with open(out / "ramp.csv", "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["clients", "ok_fps", "p50_ms", "p95_ms", "p99_ms", "error_rate", "passed"])
+        w.writerow(["clients", "answered", "ok_fps", "p50_ms", "p95_ms", "p99_ms", "error_rate", "passed"])
         for s in sorted(steps, key=lambda s: s.clients):
             lat = s.summary["latency_all"]
-            w.writerow([s.clients, f"{s.summary['ok_fps']:.1f}", lat["p50_ms"], lat["p95_ms"], lat["p99_ms"],
-                        f"{s.summary['error_rate']:.4f}", s.passed])
+            error_rate = f"{s.summary['error_rate']:.4f}" if s.summary["answered"] else ""  # no answers: no rate
+            w.writerow([s.clients, s.summary["answered"], f"{s.summary['ok_fps']:.1f}", lat["p50_ms"], lat["p95_ms"],
+                        lat["p99_ms"], error_rate, s.passed])
     import matplotlib
 
     matplotlib.use("Agg")
