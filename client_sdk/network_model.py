@@ -9,8 +9,11 @@ Its arithmetic divides kilobits by 1024 to get megabits, so we count in binary u
 1 kB = 1024 bytes, 1 Mb = 1024 * 1024 bits; 50 Mbps = 50 * 2**20 bit/s. A real payload of
 102,400 bytes (= 100 kB) then costs exactly the paper's 15.625 ms.
 
-Split over the two legs: the uplink carries the request (its serialized size, or the paper's fixed
-100 kB), one propagation delay and the extra delay; the downlink carries the response (a pose of
+Split over the two legs: the uplink carries the request (its serialized size with
+`fixed_payload_bytes=None`, or the paper's fixed 100 kB, the default, which the paper's own
+experiments keep: their requests carry a stand-in of its 90 kB JPEG), one propagation delay and the
+extra delay. Runners that send real frames charge their real size: once the device tracks it sends
+the crop around its prior (client_sdk.crop), about 20 kB a request with the ~10 kB state; the downlink carries the response (a pose of
 about 100 bytes, which the paper neglects: `count_downlink_payload=False` reproduces it exactly)
 and the other propagation delay.
 
@@ -34,7 +37,7 @@ class NetworkOptions:
     bandwidth_mbps: float = 50.0  # paper: 5G minimum
     propagation_ms: float = 10.0  # each way
     extra_max_ms: float = 30.0  # extra delay ~ U(0, extra_max_ms), once per round trip
-    fixed_payload_bytes: int | None = PAPER_PAYLOAD_BYTES  # None: use the request's real size
+    fixed_payload_bytes: int | None = PAPER_PAYLOAD_BYTES  # None: each request's real size (frames or crops)
     count_downlink_payload: bool = False  # the paper neglects the response's size
     seed: int = 0
 
