@@ -63,3 +63,19 @@ def test_a_track_run_parses_its_sequence_folder_once(tmp_path, monkeypatch, caps
     monkeypatch.setattr(sequence_io, "load", lambda root: loads.append(root) or original(root))
     assert main(["track", str(seq.root), "--backend", "noisy", "--no-plots", "--out", str(tmp_path / "o")]) == 0
     assert len(loads) == 1, loads
+
+
+def test_the_first_refusal_is_kept_in_the_server_s_words():
+    """Issue 31 item 3: when every answer fails, `track` prints the first refusal, not a guess."""
+    from flextrack.runners.exchange import apply_answer
+    from flextrack.v1 import pose_estimation_pb2 as pb
+
+    class Tracker:
+        def on_backend_response(self, *args):
+            pass
+
+    record = _record()
+    for message in ("estimator 'x' has no sequence 'orbit'", "a later one"):
+        apply_answer(Tracker(), 1, pb.EstimateResponse(status=pb.EstimateResponse.OBJECT_NOT_FOUND, message=message),
+                     record)
+    assert record.first_refusal == "OBJECT_NOT_FOUND: estimator 'x' has no sequence 'orbit'" and record.failures == 2
