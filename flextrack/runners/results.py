@@ -34,6 +34,7 @@ from flextrack.geometry import metrics
 from flextrack.geometry.camera import PinholeCamera
 
 METRIC_POINTS = 1000
+SCORE_CHUNK = 64  # frames projected at once: their temporaries (~5 MB) are what a live run's RSS swings by
 
 
 def metric_points(vertices_O: np.ndarray, max_points: int = METRIC_POINTS) -> np.ndarray:
@@ -195,7 +196,7 @@ class TrackRecord:
                                                                                              pending[0]) else None
             proj, jitter, last = metrics.proj_and_jitter_many(
                 np.stack([r.T_CO for r in pending]), np.stack([r.T_gt for r in pending]), self.camera, self._points,
-                previous=previous)
+                chunk=SCORE_CHUNK, previous=previous)
             self._last_error = (pending[-1], last)
             for k, (row, px) in enumerate(zip(pending, proj)):
                 row.proj_px = float(px)
