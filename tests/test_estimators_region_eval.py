@@ -9,7 +9,7 @@ import trimesh
 
 from estimators.base import EstimateOutput, Estimator, InvalidInput, Status
 from flextrack.cli import main as flextrack_main
-from flextrack.evaluation.prior_eval import PriorLevel, bop_frames, evaluate, parse_levels, perturb
+from flextrack.evaluation.prior_eval import PriorLevel, Target, bop_frames, evaluate, parse_levels, perturb
 from flextrack.formats import bop
 from flextrack.geometry import se3, so3
 from flextrack.wire import pose_error
@@ -62,14 +62,15 @@ def test_evaluate_scores_each_level(tmp_path):
     frames = bop_frames(bop_folder(tmp_path / "bop"), 7)
     assert [(f.scene, f.frame_id) for f in frames] == [(3, 0), (3, 1), (3, 2)]
     vertices = np.array(trimesh.creation.box(extents=(0.08, 0.06, 0.04)).vertices)
-    out = evaluate(HalfWay(), frames, parse_levels("10:5,none"), 4, 0, "box", vertices, 0.11, 640, 480)
+    targets = {7: Target("box", HalfWay(), vertices, 0.11, np.eye(4)[None])}
+    out = evaluate(targets, frames, parse_levels("10:5,none"), 4, 0, 640, 480)
     a, none = out["10mm/5deg"]["summary"], out["none"]["summary"]
     assert a["answers"] == 12 and a["ok"] == 12
     assert a["median_proj_px"] < a["prior_median_proj_px"]  # half way: a better answer than the prior
     assert 1.0 < a["nees_mean"] < 20.0  # e ~ N(0, cov / 4): NEES ~ chi2(6)
     assert none["ok"] == 0 and none["share_proj_5px"] == 0.0 and none["median_proj_px"] is None
     assert {r["status"] for r in out["none"]["answers"]} == {"REFUSED"}
-    again = evaluate(HalfWay(), frames, parse_levels("10:5"), 4, 0, "box", vertices, 0.11, 640, 480)
+    again = evaluate(targets, frames, parse_levels("10:5"), 4, 0, 640, 480)
     assert again["10mm/5deg"]["summary"]["median_proj_px"] == a["median_proj_px"]  # seeded
 
 
@@ -83,6 +84,31 @@ def test_the_command_writes_why_an_estimator_cannot_run(tmp_path, capsys):
     assert "trained for other keypoints" in doc["error"]
     assert len(doc["commit"]) == 40 and isinstance(doc["dirty"], bool) and doc["host"] and doc["date"]
     assert doc["options"]["draws"] == 1 and doc["seeds"]["seed"] == 0 and doc["frames"] == 1
+
+
+def test_symmetric_objects_score_against_the_nearest_symmetric_pose(tmp_path):
+    """An answer that is the truth turned by one of the object's symmetries scores 0 px; without the symmetry it
+    is far off. The flipped prior is the same place in the image, upside down."""
+    frames = bop_frames(bop_folder(tmp_path / "bop", frames=1), 7)
+    vertices = np.array(trimesh.creation.box(extents=(0.08, 0.06, 0.04)).vertices)
+    half_turn = se3.make(so3.exp(np.array([0.0, 0.0, np.pi])), np.zeros(3))
+
+    class Turned(HalfWay):
+        def estimate(self, inp):
+            return EstimateOutput(Status.OK, T_TRUE @ half_turn, 1.0, np.eye(6) * 1e-4)
+
+    symmetric = {7: Target("box", Turned(), vertices, 0.11, np.stack([np.eye(4), half_turn]))}
+    plain = {7: Target("box", Turned(), vertices, 0.11, np.eye(4)[None])}
+    s_sym = evaluate(symmetric, frames, parse_levels("10:5"), 1, 0, 640, 480)["10mm/5deg"]
+    s_plain = evaluate(plain, frames, parse_levels("10:5"), 1, 0, 640, 480)["10mm/5deg"]
+    assert s_sym["summary"]["median_proj_px"] < 1e-6 and s_sym["summary"]["share_add_10"] == 1.0
+    assert s_plain["summary"]["median_proj_px"] > 20 and s_plain["summary"]["share_ok_wrong"] == 1.0
+    assert set(s_sym["by_object"]) == {"7"} and set(s_sym["by_visib"]) == {"unknown"}
+    flip = se3.turned_about_line_of_sight(T_TRUE, np.zeros(3))
+    c = T_TRUE[:3, 3]
+    np.testing.assert_allclose(flip[:3, 3], c, atol=1e-12)  # the centre stays where it was
+    axis = so3.log(flip[:3, :3] @ T_TRUE[:3, :3].T)
+    np.testing.assert_allclose(np.abs(axis), np.pi * np.abs(c) / np.linalg.norm(c), atol=1e-9)
 
 
 def test_prior_levels_label_none():

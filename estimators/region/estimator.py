@@ -21,12 +21,14 @@ from estimators.region.histograms import ColourHistograms
 from estimators.region.optimizer import OptimizerConfig, optimize
 from estimators.region.session_store import SessionStore
 from estimators.region.viewpoint_model import ViewpointModel, cached_viewpoint_model
+from flextrack.geometry import se3, so3
 
 PARAMS = {"scales", "iterations_per_scale", "half_segments", "line_weight", "damping_rotation",
           "damping_translation", "covariance_inflation", "default_prior_sigma_m", "default_prior_sigma_deg",
           "bins", "learning_rate", "max_sessions", "max_session_age_s", "views_subdivisions", "contour_points",
           "cache_dir", "min_confidence", "histogram_px", "refit_scales", "refits", "margin_factors", "session_weight",
-          "retry_below", "retry_margin_factors", "coarse_search"}
+          "retry_below", "retry_margin_factors", "coarse_search", "unmix",
+          "refit_unmix", "multi_start_deg", "multi_start_sigmas", "flip_margin", "flip_check_below"}
 
 
 class RegionEstimator(Estimator):
@@ -43,7 +45,9 @@ class RegionEstimator(Estimator):
                  min_confidence: float = 0.3, histogram_px: int = 20, refit_scales: tuple[int, ...] = (2, 1),
                  refits: int = 1, margin_factors: tuple[float, float] = (0.5, 0.5), session_weight: float = 0.5,
                  retry_below: float = 0.45, retry_margin_factors: tuple[float, float] | None = (1.0, 2.0),
-                 coarse_search: bool = True):
+                 coarse_search: bool = True, unmix: float = 0.3, refit_unmix: float = 0.15,
+                 multi_start_deg: float = 8.0, multi_start_sigmas: float = 1.0, flip_margin: float | None = None,
+                 flip_check_below: float = 1.2):
         """`objects`: object id -> ObjectModel (estimators.objects)."""
         super().__init__(name, list(objects))
         self._objects = dict(objects)
@@ -63,6 +67,9 @@ class RegionEstimator(Estimator):
         self.retry_margin_factors = tuple(retry_margin_factors) if retry_margin_factors else None
         self.session_weight = session_weight
         self.coarse_search = coarse_search
+        self.unmix, self.refit_unmix = unmix, refit_unmix
+        self.multi_start_deg, self.multi_start_sigmas = multi_start_deg, multi_start_sigmas
+        self.flip_margin, self.flip_check_below = flip_margin, flip_check_below
         self._models: dict[str, ViewpointModel] = {}
         self._models_lock = threading.Lock()
         self.sessions: SessionStore[ColourHistograms] = SessionStore(
@@ -126,6 +133,32 @@ class RegionEstimator(Estimator):
             return 0.0
         return float(np.clip(pf[fg_in].mean() - pb[bg_in].mean(), 0.0, 1.0))
 
+    def _support(self, frame: CellImage, hist: ColourHistograms, lines, agree: float = 0.2) -> float:
+        """The share of the outline's lines whose colours step from object to background where the outline
+        says: per line, the mean foreground posterior 1-4 px inside minus 1-4 px outside above `agree`."""
+        offsets = np.arange(1, 5, dtype=float)
+        fg, fg_in = sample_pixels(frame, lines, -offsets + 0.5)
+        bg, bg_in = sample_pixels(frame, lines, offsets + 0.5)
+        pf = np.where(fg_in, hist.posterior(fg), np.nan)
+        pb = np.where(bg_in, hist.posterior(bg), np.nan)
+        with np.errstate(invalid="ignore"):
+            step = np.nanmean(pf, axis=1) - np.nanmean(pb, axis=1)
+        return float(np.mean(np.nan_to_num(step, nan=0.0) > agree))
+
+    def _starts(self, R0: np.ndarray, t0: np.ndarray, cov: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Where fits start: the prior's mean, and, when its rotation is unsure by more than `multi_start_deg`
+        (a start from a coarse prior: a user lining the phone up with a guide view), the mean turned by one
+        sigma either way about each camera axis; the best fit by its own score is kept."""
+        sigma = np.sqrt(np.maximum(np.diag(cov)[:3], 0.0))
+        starts = [(R0, t0)]
+        if np.degrees(sigma.max()) >= self.multi_start_deg:
+            for axis in range(3):
+                for sign in (-1.0, 1.0):
+                    d = np.zeros(3)
+                    d[axis] = sign * self.multi_start_sigmas * sigma[axis]
+                    starts.append((so3.exp(d) @ R0, t0))
+        return starts
+
     def _coarse_shift(self, frame: CellImage, hist: ColourHistograms, lines, prior_px: float, K: np.ndarray,
                       t0: np.ndarray) -> np.ndarray:
         """A translation (camera frame, m) moving the prior's silhouette, in the image plane, to where
@@ -154,34 +187,44 @@ class RegionEstimator(Estimator):
         shift_px = np.array([dx - reach, dy - reach], dtype=float)
         return np.array([shift_px[0] * t0[2] / K[0, 0], shift_px[1] * t0[2] / K[1, 1], 0.0])
 
-    def _fit(self, frame, shape, K, model, hist, R0, t0, information, prior_px, margin_factors):
-        """(confidence, result, lines at the result): this frame's own histograms from the prior's
-        outline, `margin_factors` x the prior's pixel uncertainty off it (inside, outside), a first fit,
-        then histograms again from the fitted outline and the fine scales again (EM-like). A session's
-        histograms, learned on its earlier frames, are mixed in with `session_weight`."""
-        def frame_histograms(lines, margins):
+    def _fit(self, frame, shape, K, model, hist, R0, t0, information, prior_px, margin_factors, start=None,
+             prior_at_start: bool = False):
+        """(score, confidence, result, lines at the result): this frame's own histograms from the outline at
+        `start` (default: the prior's), `margin_factors` x the prior's pixel uncertainty off it (inside,
+        outside), a first fit from there, then histograms again from the fitted outline and the fine scales
+        again (EM-like). A session's histograms, learned on its earlier frames, are mixed in with
+        `session_weight`. The score (colour agreement plus the share of lines that agree) ranks fits from
+        different starts."""
+        def frame_histograms(lines, margins, unmix=0.0):
             own = ColourHistograms(self.bins, self.learning_rate, self.learning_rate)
             own.update(*self._histogram_samples(frame, lines, *margins))
+            own = own.unmixed(unmix)
             return own.mixed(hist, self.session_weight) if hist.initialised else own
 
         margins = [float(np.clip(f * prior_px, 1.0, 3.0 * self.histogram_px)) for f in margin_factors]
-        prior_lines = project_lines(model, R0, t0, K, shape)
-        work = frame_histograms(prior_lines, margins)
-        start = (R0, t0)
+        R_s, t_s = start or (R0, t0)
+        if prior_at_start:  # a hypothesis of its own (the flipped prior): its prior term centred on it
+            R0, t0 = R_s, t_s
+        prior_lines = project_lines(model, R_s, t_s, K, shape)
+        if prior_lines is None:
+            return -1.0, -1.0, None, None
+        work = frame_histograms(prior_lines, margins, self.unmix)
+        start = (R_s, t_s)
         if self.coarse_search:
-            start = (R0, t0 + self._coarse_shift(frame, work, prior_lines, prior_px, K, t0))
+            start = (R_s, t_s + self._coarse_shift(frame, work, prior_lines, prior_px, K, t_s))
         result = optimize(frame, K, model, work, R0, t0, information, self.optimizer, shape=shape, start=start)
         for _ in range(self.refits):
             lines = None if result is None else project_lines(model, result.R, result.t, K, shape)
             if lines is None:
                 break
-            work = frame_histograms(lines, (1.0, 1.0))
+            work = frame_histograms(lines, (1.0, 1.0), self.refit_unmix)
             result = optimize(frame, K, model, work, R0, t0, information, self.optimizer,
                               start=(result.R, result.t), scales=self.refit_scales, shape=shape) or result
         lines = None if result is None else project_lines(model, result.R, result.t, K, shape)
         if lines is None:
-            return -1.0, None, None
-        return self._confidence(frame, work, lines), result, lines
+            return -1.0, -1.0, None, None
+        confidence = self._confidence(frame, work, lines)
+        return confidence + self._support(frame, work, lines), confidence, result, lines
 
     def estimate(self, inp: EstimateInput) -> EstimateOutput:
         start = time.perf_counter()
@@ -214,13 +257,27 @@ class RegionEstimator(Estimator):
         # the pixels as histogram cells, once, as far around the prior's outline as any line may reach
         reach = max(self.optimizer.scales) * self.optimizer.line_model.half_segments
         frame = CellImage.around(image, hist, lines.centers, reach + 3 * prior_px + 2 * self.histogram_px)
-        best = self._fit(frame, shape, K, model, hist, R0, t0, information, prior_px, self.margin_factors)
-        if best[0] < self.retry_below and self.retry_margin_factors:
+        fits = [self._fit(frame, shape, K, model, hist, R0, t0, information, prior_px, self.margin_factors, s)
+                for s in self._starts(R0, t0, cov)]
+        best = max(fits, key=lambda fit: fit[0])
+        if best[1] < self.retry_below and self.retry_margin_factors:
             # lost, most likely from histograms learned off the prior's outline: again, further off it
             other = self._fit(frame, shape, K, model, hist, R0, t0, information, prior_px,
                               self.retry_margin_factors)
             best = max(best, other, key=lambda fit: fit[0])
-        confidence, result, lines = best
+        score, confidence, result, lines = best
+        if result is not None and confidence >= self.min_confidence and self.flip_margin is not None \
+                and (fresh or score < self.flip_check_below):
+            flip_T = se3.turned_about_line_of_sight(inp.prior_T_CO, model.center)
+            flip = (flip_T[:3, :3], flip_T[:3, 3])
+            alt = self._fit(frame, shape, K, model, hist, R0, t0, information, prior_px, self.margin_factors, flip,
+                            prior_at_start=True)
+            if alt[0] >= score - self.flip_margin:
+                stage["optimize"] = (time.perf_counter() - t_opt) * 1e3
+                return EstimateOutput(Status.OBJECT_NOT_FOUND, message=(
+                    f"the prior looks wrong for its claimed uncertainty: the pose turned 180 deg about the line of "
+                    f"sight fits the image as well (score {alt[0]:.2f} against {score:.2f}); send a prior from "
+                    "another source or ask a global estimator"), confidence=confidence, stage_ms=stage)
         stage["optimize"] = (time.perf_counter() - t_opt) * 1e3
         if result is None or lines is None:
             return EstimateOutput.not_found("the object's outline left the image")

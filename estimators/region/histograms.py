@@ -53,6 +53,20 @@ class ColourHistograms:
         out.initialised = True
         return out
 
+    def unmixed(self, share: float) -> ColourHistograms:
+        """A new pair with `share` of each histogram's samples taken to have come from the other side (samples
+        labelled by an outline that is off): observed fg = (1 - s) F + s B and bg = (1 - s) B + s F, solved for
+        F and B, negatives clipped."""
+        out = ColourHistograms(self.bins, self.learning_rate_f, self.learning_rate_b)
+        if share <= 0 or not self.initialised:
+            out.fg, out.bg, out.initialised = self.fg.copy(), self.bg.copy(), self.initialised
+            return out
+        det = 1.0 - 2.0 * share  # (1 - s)^2 - s^2
+        fg = np.maximum(((1 - share) * self.fg - share * self.bg) / det, 0.0)
+        bg = np.maximum(((1 - share) * self.bg - share * self.fg) / det, 0.0)
+        out.fg, out.bg, out.initialised = fg / max(fg.sum(), 1e-12), bg / max(bg.sum(), 1e-12), True
+        return out
+
     def posterior(self, cells: np.ndarray) -> np.ndarray:
         """P(foreground | colour) for each cell index, in (0, 1)."""
         f, b = self.fg[cells], self.bg[cells]

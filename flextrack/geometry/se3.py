@@ -48,3 +48,11 @@ def interpolate_at(times_ns: np.ndarray, poses: np.ndarray, t_ns: int) -> np.nda
         return poses[i].copy()
     s = (t_ns - times_ns[i]) / (times_ns[i + 1] - times_ns[i])
     return interpolate(poses[i], poses[i + 1], float(s))
+
+
+def turned_about_line_of_sight(T_CO: np.ndarray, center_O: np.ndarray, angle: float = np.pi) -> np.ndarray:
+    """T_CO with the object turned by `angle` about the camera's ray through its point `center_O`: the object
+    stays where it is in the image, turned in it (180 deg: the pose a tracker that lost its orientation holds)."""
+    c = T_CO[:3, :3] @ center_O + T_CO[:3, 3]
+    R_turn = so3.exp(angle * c / max(float(np.linalg.norm(c)), 1e-12))
+    return make(R_turn @ T_CO[:3, :3], R_turn @ (T_CO[:3, 3] - c) + c)
