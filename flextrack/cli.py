@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "guide-view": ("flextrack.guide_view", "draw the outline a user lines an object up with, and the pose it stands for"),
     "simulate": ("flextrack.simulator.cli", "generate a synthetic sequence folder (trajectory, IMU, ground truth, frames)"),
     "convert-euroc": ("flextrack.simulator.euroc_cli", "turn a EuRoC IMU + ground-truth recording into a sequence folder"),
+    "calibrate": ("flextrack.calibration.cli", "an IMU's noise, bias walk, time offset and lever arm from a recording with ground truth"),
     "track": ("flextrack.runners.track_cli", "replay a sequence folder through the tracker and report its errors"),
     "experiment": ("flextrack.experiments.cli", "rerun the paper's experiments (table2, ablation, timing, euroc) and the filter's own (filter, bound)"),
     "train": ("flextrack.training.cli", "train the PVNet-style network on rendered views and export it to ONNX"),

@@ -32,6 +32,8 @@ EXAMPLES: dict[str, list[str]] = {
                  "flextrack simulate --motion translational --level easy --duration 10 --render --out out/seq/te"],
     "convert-euroc": ["flextrack convert-euroc --euroc ../shared/data/euroc_v1_02_medium --out out/seq/v1_02",
                       "flextrack convert-euroc --euroc MY_RECORDING --object-distance 1.2 --fps 30 --out out/seq/mine"],
+    "calibrate": ["flextrack calibrate imu --data ../shared/data/phone_ar/nexus5_ar_a",
+                  "flextrack calibrate imu --data MY_RECORDING --json out/calibrate_imu.json"],
     "track": ["flextrack track out/seq/circ_med --backend noisy --out out/track",
               "flextrack track out/seq/circ_med --backend pvnet --fps 30 --out out/track_pvnet",
               "flextrack track out/seq/mine --tracker paper --set px_error=15 --out out/track_mine",

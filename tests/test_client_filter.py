@@ -258,3 +258,52 @@ def test_imu_rows_as_numpy_arrays_are_taken_and_bad_shapes_refused():
         with pytest.raises(ValueError):
             tracker.add_imu(11_000_000, gyro, np.array([0.0, 0.0, 9.81]))
     assert tracker.now_ns == 6_000_000  # the refused samples changed nothing
+
+
+def test_noise_matching_recovers_an_understated_density_and_leaves_a_true_one_alone():
+    """Covariance matching: answers whose rotation residual carries 3 q^2 dt more than S says give q^2 back
+    (within the fit's scatter), and the density used is the fit's lower bound; residuals as S says leave
+    the density alone."""
+    from client_sdk.eskf.noise_matching import NoiseMatcher
+
+    rng = np.random.default_rng(4)
+    for q_true in (0.01, 0.0):
+        m = NoiseMatcher(1000, 1)
+        for _ in range(2000):
+            dt = rng.uniform(0.04, 0.08)
+            per_axis = 2e-5 + q_true ** 2 * dt  # S's rotation block says 2e-5 per axis; the IMU adds q^2 dt
+            r2 = float(np.sum(rng.normal(0.0, np.sqrt(per_axis), 3) ** 2))
+            m.add(r2, 3 * 2e-5, 0.0, dt)
+        assert m.fit == pytest.approx(q_true ** 2, abs=2.5e-5)
+        if q_true:
+            assert 0.5 * q_true < m.density < q_true
+        else:
+            assert m.density == 0.0
+
+
+def test_a_gap_in_the_imu_stream_is_uncertain_not_fine():
+    """A phone's IMU stops for seconds at times: the state coasts and its covariance grows at hand-motion
+    densities, so a frame 0.3 s into the gap is not FINE (holding the last sample with the IMU's own noise
+    called such frames FINE 100+ px off), and nothing in it is non-finite."""
+    tracker = _started()
+    t = tracker.now_ns
+    quiet = tracker.add_frame(t + 20_000_000)
+    gap = tracker.add_frame(t + 300_000_000)
+    assert quiet.status is Status.FINE
+    assert gap.status is Status.TRACKING_LOST
+    assert tracker.status_detail.startswith("uncertain")
+    assert np.all(np.isfinite(gap.covariance)) and np.trace(gap.covariance) > 100 * np.trace(quiet.covariance)
+
+
+def test_an_exact_answer_is_weighed_at_the_floor():
+    """However exact a backend's pose, the extrinsic and the frame time are not (answer_floor_*): after an
+    answer claiming nanometres the pose's variance stays near the floor's, not at the answer's."""
+    exact = wire.diagonal_covariance(np.radians(1e-6), 1e-9)
+    sigmas = {}
+    for floor_m in (0.0, 0.001):
+        tracker = _started(answer_floor_translation_m=floor_m, answer_floor_rotation_deg=100 * floor_m)
+        r = tracker.add_frame(tracker.now_ns + 5_000_000)
+        m = Motion()
+        tracker.on_backend_response(r.request.request_id, r.t_ns, m.T_CO(r.t_ns * 1e-9), True, exact)
+        sigmas[floor_m] = np.sqrt(tracker.pose_covariance_at(r.t_ns)[3, 3])
+    assert sigmas[0.001] > 1.5 * sigmas[0.0] and sigmas[0.001] < 1.5e-3

@@ -10,10 +10,14 @@ density, from its residual r:
     e_k = |r_rot|^2 - (tr S_rot - 3 q_now^2 dt),     e_k = b_k q^2 + zero-mean noise,   b_k = 3 dt
 
 (dt^3 and the translation block for the accelerometer), and q^2 is their weighted least-squares fit,
-weights 1 / var(e_k) ~ 3 / (2 tr(S)^2) (a scaled chi-square of 3 dof), with an exponential memory of
-`noise_match_answers` answers. The filter uses max(yaml density, the fit less one standard error): an
-IMU as good as its yaml (the simulator's) is left nearly alone, and the density moves continuously
-(a switch at a significance level made it flicker between the yaml's and the fit's).
+weights 1 / var(e_k) = 1 / (2 tr(S_block^2)) (Gaussian residuals: an anisotropic block scatters
+more than an isotropic one of the same trace), with an exponential memory of
+`noise_match_answers` answers. The filter uses max(yaml density, the fit less two standard errors: the
+least noise the answers insist on, a lower confidence bound, ~1/3 of the fit's q^2 with a 100-answer
+memory on a phone): the answers' own noise hides a good IMU's (a simulated Pixel 2's gyro: standard error ~100x its density),
+so an IMU as good as its yaml is left alone (one standard error raised the simulator's densities in
+8 % of its answers, and its jitter by a third), while the density moves continuously (a switch at a
+significance level made it flicker between the yaml's and the fit's).
 Costs a few scalar operations per answer, nothing per IMU sample.
 """
 
@@ -24,6 +28,7 @@ import math
 import numpy as np
 
 MIN_ANSWERS = 20  # the fit is used from this many answers on (one answer on the gate is no evidence)
+SE_BELOW = 2.0  # the density used: the fit less this many standard errors
 
 
 class NoiseMatcher:
@@ -35,28 +40,32 @@ class NoiseMatcher:
         self._num = 0.0  # sum of w b e
         self._den = 0.0  # sum of w b^2
         self._count = 0.0  # answers, with the same memory
-        self.density = 0.0  # the fit less one standard error (0 until it has one)
+        self.fit = 0.0  # the squared density the answers show (unbiased, scattered)
+        self.density = 0.0  # the fit less two standard errors, the least the answers insist on (0 at most)
 
-    def add(self, r2: float, trace_s: float, density_now: float, dt: float) -> None:
+    def add(self, r2: float, trace_s: float, density_now: float, dt: float, trace_s2: float | None = None) -> None:
         """One answer: |r|^2 and tr(S) of its block, the density S was built with, the interval since the
-        last answer."""
+        last answer; `trace_s2` tr(S_block^2) (default: as for an isotropic block, tr(S)^2 / 3)."""
         if not (dt > 0 and trace_s > 0 and math.isfinite(r2)):
             return
         dims = 3.0 if self._power == 1 else 1.0
         b = dims * dt ** self._power
         e = r2 - (trace_s - density_now ** 2 * b)
-        w = 1.5 / (trace_s * trace_s)
+        w = 0.5 / (trace_s * trace_s / 3.0 if trace_s2 is None else trace_s2)  # 1 / var(|r|^2) = 1 / (2 tr S^2)
         self._num = self._num * self._decay + w * b * e
         self._den = self._den * self._decay + w * b * b
         self._count = self._count * self._decay + 1.0
         if self._count < MIN_ANSWERS:
             return
-        fit = self._num / self._den
-        se = 1.0 / math.sqrt(self._den)
-        self.density = math.sqrt(max(fit - se, 0.0))
+        self.fit = self._num / self._den
+        self.density = math.sqrt(max(self.fit - SE_BELOW / math.sqrt(self._den), 0.0))
 
 
-def blocks(r: np.ndarray, S: np.ndarray) -> tuple[tuple[float, float], tuple[float, float]]:
-    """((|r_rot|^2, tr S_rot), (|r_t|^2, tr S_t)) of an answer's residual and innovation covariance."""
-    return ((float(r[0:3] @ r[0:3]), float(S[0, 0] + S[1, 1] + S[2, 2])),
-            (float(r[3:6] @ r[3:6]), float(S[3, 3] + S[4, 4] + S[5, 5])))
+def blocks(r: np.ndarray, S: np.ndarray) -> list[tuple[float, float, float]]:
+    """[(|r_b|^2, tr S_b, tr S_b^2)] for the rotation block and the translation block of an answer's residual
+    and innovation covariance."""
+    out = []
+    for b in (slice(0, 3), slice(3, 6)):
+        Sb = S[b, b]
+        out.append((float(r[b] @ r[b]), float(np.trace(Sb)), float(np.sum(Sb * Sb))))
+    return out

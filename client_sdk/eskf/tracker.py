@@ -52,6 +52,7 @@ from flextrack.geometry import so3
 from flextrack.geometry.camera import PinholeCamera
 
 _DEG = np.pi / 180.0
+SETTLE_ANSWERS = 20  # answers after a (re-)initialisation before the noise fits take them
 
 
 class FilterTracker(TrackerBase):
@@ -86,6 +87,7 @@ class FilterTracker(TrackerBase):
         self._last_uv: np.ndarray | None = None
         self._corrected = False
         self._rejected = 0  # answers rejected in a row
+        self._since_start = 0  # answers since the last (re-)initialisation
         self._ease = (np.zeros(6), 0)  # (pose offset still to ease in, camera time it was set)
         self._frame_interval_s = 0.0
         self.error_dynamics = ErrorDynamics() if fo.record_error_dynamics else None
@@ -104,6 +106,11 @@ class FilterTracker(TrackerBase):
     def time_offset_s(self) -> float:
         """The estimated camera-IMU time offset (t_imu = t_camera + offset)."""
         return self._td
+
+    @property
+    def time_offset_std_s(self) -> float:
+        """The time offset's standard deviation after the last answer (nan before the first)."""
+        return float("nan") if self._anchor is None else float(self._anchor[1].cov[TD, TD]) ** 0.5
 
     @property
     def now_ns(self) -> int | None:
@@ -402,13 +409,17 @@ class FilterTracker(TrackerBase):
     def _match_noise(self, res, dt: float) -> None:
         """Feed an answer's innovation to the noise fits (`eskf.noise_matching`) and use what they say. A gated
         answer counts as one on the gate (an outlier's size says nothing of the IMU; that the filter gated it
-        may: too little process noise); one across a gap of the IMU's stream not at all."""
-        if self._matchers is None or res.residual is None or not self._measured_since(self._anchor[0]):
+        may: too little process noise); one across a gap of the IMU's stream not at all, nor the first
+        SETTLE_ANSWERS after a (re-)initialisation (a start's transient is no IMU noise: a simulated 8 s run
+        at 30 FPS had its densities raised by it)."""
+        self._since_start += 1
+        if (self._matchers is None or res.residual is None or self._since_start <= SETTLE_ANSWERS
+                or not self._measured_since(self._anchor[0])):
             return
         now = self._prop.densities
         shrink = min(1.0, self.options.filter.gate_chi2 / res.chi2) if res.chi2 > 0 else 1.0
-        for m, d, (r2, trace_s) in zip(self._matchers, now, blocks(res.residual, res.S)):
-            m.add(r2 * shrink, trace_s, d, dt)
+        for m, d, (r2, trace_s, trace_s2) in zip(self._matchers, now, blocks(res.residual, res.S)):
+            m.add(r2 * shrink, trace_s, d, dt, trace_s2)
         self._prop.match(self._matchers[0].density, self._matchers[1].density)
 
     def _measured_since(self, t: int) -> bool:
@@ -427,6 +438,7 @@ class FilterTracker(TrackerBase):
         if len(window) < 2 or tau - window[-1][0] > self._max_gap_ns:  # in a gap of the IMU: nothing measured
             est = replace(est, still=False)
         self._rejected = 0
+        self._since_start = 0
         # the time offset is the device's, not the track's: a re-initialisation keeps the estimate and its sigma
         td_std = None if self._anchor is None else float(self._anchor[1].cov[TD, TD]) ** 0.5
         self._anchor = None

@@ -191,10 +191,15 @@ def lever_arm(imu: euroc.ImuData, gt: euroc.GroundTruth, offset_s: float) -> tup
     return sol[:3], float(np.sqrt(np.mean(before ** 2) * 3)), float(np.sqrt(np.mean(after ** 2) * 3))
 
 
+def recording(data: Path) -> tuple[euroc.ImuData, euroc.GroundTruth]:
+    """The IMU and the ground truth of a EuRoC-layout folder (flat, as `shared/data`'s, or mav0/)."""
+    return (euroc.read_imu(_file(data, "imu0.csv", "imu0/data.csv")),
+            euroc.read_groundtruth(_file(data, "groundtruth.csv", "state_groundtruth_estimate0/data.csv")))
+
+
 def calibrate(data: Path) -> ImuCalibration:
     """Everything above, for the recording in `data` (imu0.csv and groundtruth.csv, EuRoC columns)."""
-    imu = euroc.read_imu(_file(data, "imu0.csv", "imu0/data.csv"))
-    gt = euroc.read_groundtruth(_file(data, "groundtruth.csv", "state_groundtruth_estimate0/data.csv"))
+    imu, gt = recording(data)
     t = imu.t_ns * 1e-9
     steps = np.diff(t)
     nominal = float(np.median(steps))

@@ -49,7 +49,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="table2 --backend: modelled compute time of the estimator per frame, ms (virtual time; "
                         "145 = pvnet with its turned crops and outline refinement on this project's 2-core CPU, "
                         "`flextrack bench pvnet`, with some margin)")
-    parser.add_argument("--data", type=Path, help="euroc: the EuRoC folder (default ../shared/data/euroc_v1_02_medium)")
+    parser.add_argument("--data", type=Path, help="euroc: the EuRoC folder (default ../shared/data/euroc_v1_02_medium); "
+                        "ablation: run on this recording (a hand-held one, EuRoC layout) instead of the simulated programs")
     parser.add_argument("--tracker", choices=PRESETS, default=None,
                         help="euroc: also run this tracker, as `flextrack track --tracker` (default: only the "
                         "experiment's own variants full, bscm_off, filter)")
@@ -97,8 +98,8 @@ def run(args) -> int:
         problem = "euroc --fps: give one frame rate"
     if args.jobs is not None and args.jobs < 1:
         problem = f"--jobs must be at least 1, got {args.jobs}"
-    if args.data is not None and args.experiment != "euroc":
-        problem = "--data applies to euroc (the others simulate their sequences)"
+    if args.data is not None and args.experiment not in ("euroc", "ablation"):
+        problem = "--data applies to euroc and ablation (the others simulate their sequences)"
     if args.backend != "oracles" and args.experiment != "table2":
         problem = "--backend applies to table2 (the others run the noisy oracle)"
     if (args.tracker or args.set) and args.experiment != "euroc":
@@ -130,7 +131,7 @@ def run(args) -> int:
         elif args.experiment == "bound":
             bound.run(args.out, seed_list, args.duration, args.in_process, fps or paper.FPS, jobs=args.jobs)
         elif args.experiment == "ablation":
-            ablation.run(args.out, args.seed, args.duration, in_process=args.in_process)
+            ablation.run(args.out, args.seed, args.duration, in_process=args.in_process, data=args.data)
         elif args.experiment == "filter":
             filter_checks.run(args.out, seed_list, args.duration, args.in_process)
         elif args.experiment == "timing":

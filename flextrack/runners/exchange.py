@@ -8,6 +8,7 @@ initialisation, the IMU noise from the sequence's Kalibr yaml, the answer's cova
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -70,5 +71,6 @@ def finish(tracker, record: TrackRecord) -> TrackRecord:
     offset = getattr(tracker, "time_offset_s", None)
     if offset is not None:
         record.time_offset_ms = offset * 1e3
+        record.time_offset_sigma_ms = getattr(tracker, "time_offset_std_s", math.nan) * 1e3
     record.error_dynamics = getattr(tracker, "error_dynamics", None)
     return record

@@ -144,6 +144,7 @@ class Summary:
     failures: int = 0
     bad_covariances: int = 0  # answers whose covariance was refused (the tracker's default used)
     time_offset_ms: float = math.nan  # the filter's estimate of the camera-IMU offset at the end (t_imu - t_camera)
+    time_offset_sigma_ms: float = math.nan  # its standard deviation, as the filter has it
 
 
 @dataclass
@@ -158,6 +159,7 @@ class TrackRecord:
     first_refusal: str = ""  # the first answer that was not OK: "STATUS: the server's message"
     bad_covariances: int = 0
     time_offset_ms: float = math.nan
+    time_offset_sigma_ms: float = math.nan
     error_dynamics: object | None = None  # the filter's, when it kept them (client_sdk.eskf.error_dynamics)
 
     def __post_init__(self) -> None:
@@ -254,7 +256,8 @@ class TrackRecord:
             worst_fine_px=max(fine) if fine else math.nan, status_counts=counts,
             requests=self.requests, responses=self.responses, failures=self.failures,
             median_request_kb=float(np.median(self.request_bytes)) / 1024 if self.request_bytes else math.nan,
-            bad_covariances=self.bad_covariances, time_offset_ms=self.time_offset_ms)
+            bad_covariances=self.bad_covariances, time_offset_ms=self.time_offset_ms,
+            time_offset_sigma_ms=self.time_offset_sigma_ms)
 
     def write(self, out_dir: str | Path, name: str = "track", provenance: dict | None = None) -> Path:
         """frames.csv, summary.json and TUM files (estimate and ground truth) under out_dir; `provenance`

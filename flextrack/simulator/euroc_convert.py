@@ -39,6 +39,7 @@ from flextrack.simulator.sequence_writer import bop_obj_id_of, install_model, wr
 MIN_DISTANCE_M, MAX_DISTANCE_M = 0.6, 3.0
 IMU_LEAD_S = 0.55  # the first frame comes this long after the IMU starts: 0.5 s still window + margin
 OBJECT_SCALE = 4.0  # default: the 15 cm default object becomes a 58 cm box, which PIA accepts to ~2.2 m in cam0
+PLACEMENT_RATE_HZ = 20.0  # the camera poses the placement looks at (independent of the frame rate)
 AREA_MARGIN = 1.3  # placement counts a frame as seen when the object's image box is >= 1.3 x THR_area
 
 
@@ -144,9 +145,12 @@ def convert_euroc(euroc_dir: str | Path, out_dir: str | Path, *, fps: float | No
     if object_distance_m is not None and not MIN_DISTANCE_M <= object_distance_m <= reach_m:
         raise ValueError(f"the object distance must be within {MIN_DISTANCE_M}..{reach_m:.2f} m (where the PIA "
                          f"still accepts the object at scale {object_scale:g}), got {object_distance_m:g}")
-    placement = place_object(T_WC, camera, float(np.linalg.norm(vertices - centre_O, axis=1).max()), reach_m,
+    # placed from the camera's path at a fixed rate, not at the frames': the object stays where it is at any --fps
+    place_t = np.arange(first, last + 1, round(1e9 / PLACEMENT_RATE_HZ), dtype=np.int64)
+    T_WC_place = np.stack([se3.interpolate_at(gt_t, gt_poses, int(t)) for t in place_t]) @ cam.T_BS
+    placement = place_object(T_WC_place, camera, float(np.linalg.norm(vertices - centre_O, axis=1).max()), reach_m,
                              distance_m=object_distance_m, position_W=object_position)
-    facing = np.median(T_WC[:, :3, 3], axis=0) - placement.centre_W  # turn the object's +x to the cameras
+    facing = np.median(T_WC_place[:, :3, 3], axis=0) - placement.centre_W  # turn the object's +x to the cameras
     R_WO = so3.exp(np.array([0.0, 0.0, np.arctan2(facing[1], facing[0])]))
     T_WO = se3.make(R_WO, placement.centre_W - R_WO @ centre_O)
     T_CW = np.linalg.inv(T_WC)

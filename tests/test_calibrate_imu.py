@@ -1,0 +1,42 @@
+"""`flextrack calibrate imu`: the time offset, noise and lever arm of a recording against its ground truth."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from flextrack.calibration import imu as calibration
+from flextrack.cli import main
+from flextrack.formats import euroc
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+EUROC = DATA / "euroc_v1_02_medium"
+PHONE = DATA / "phone_ar" / "nexus5_ar_b"
+
+
+def test_a_known_delay_of_the_gyro_is_found():
+    """The gyro stamped 12 ms late against the truth reads as a 12 ms offset (t_imu = t_camera + offset)."""
+    if not EUROC.exists():
+        pytest.skip(f"{EUROC} absent (shared data not mounted)")
+    imu, gt = calibration.recording(EUROC)
+    base, _ = calibration.time_offset(imu, gt)
+    late = euroc.ImuData(imu.t_ns + 12_000_000, imu.gyro, imu.accel)
+    offset, peak = calibration.time_offset(late, gt)
+    assert abs(base) < 0.001 and offset - base == pytest.approx(0.012, abs=0.0005) and peak > 0.9
+
+
+def test_calibrate_imu_reports_a_phone_and_refuses_a_bad_folder(tmp_path, capsys):
+    if not PHONE.exists():
+        pytest.skip(f"{PHONE} absent (shared data not mounted)")
+    out = tmp_path / "cal.json"
+    assert main(["calibrate", "imu", "--data", str(PHONE), "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "time offset" in text and "(yaml: 0.000175" in text and "lever arm" in text
+    found = json.loads(out.read_text())
+    assert 14.0 < found["imu"]["time_offset_ms"] < 19.0  # the gyro against the motion capture's rate
+    assert found["imu"]["gyroscope_noise_density"] > 1.75e-4 and found["provenance"]["commit"] is not None
+    assert np.isfinite(found["imu"]["lever_arm_m"]).all()
+    assert main(["calibrate", "imu", "--data", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "imu0.csv" in err
