@@ -4,9 +4,9 @@
 interceptor in live mode) in real time against a `flextrack serve` child process with the
 ground-truth oracle, on a simulated sequence as long as the run; nothing is recorded for scoring.
 `--runner track-live`: what `flextrack track --live` runs (flextrack.runners.live, its record for
-scoring included) against the same server. Every `--sample-s` it prints the process's RSS (and for
-the SDK, the sizes of its buffers); at the end, the RSS slope after the first minute, which is what
-an hour-long AR session would add.
+scoring included) against the same server. Every `--sample-s` it prints the process's RSS once its
+free heap pages are returned (`held_mib`; and for the SDK, the sizes of its buffers); at the end, the
+slope after the first minute, which is what an hour-long AR session would add.
 """
 
 from __future__ import annotations
@@ -42,6 +42,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 SETTLE_S = 60.0  # the slope is fitted after this: the first minute fills caches, buffers and the allocator
+
+
+def held_mib() -> float:
+    """The RSS once the process has returned its free heap pages (garbage collected, malloc_trim): what it holds.
+    Without it a live run's RSS swung between levels 10-30 MB apart as glibc kept or returned the pages of
+    transient arrays, and a fitted slope said more about when the samples fell than about growth."""
+    _release_free_memory()
+    return rss_mib()
 
 
 def rss_mib() -> float:
@@ -161,7 +169,7 @@ def _device(seq, address: str, sample_s: float, fusion: str) -> list[dict]:
                     tracker.on_backend_failure(result.request.request_id)
             if time.perf_counter() >= next_sample:
                 next_sample += sample_s
-                sample = {"t_s": round(time.perf_counter() - start, 1), "frames": frames, "rss_mib": round(rss_mib(), 2),
+                sample = {"t_s": round(time.perf_counter() - start, 1), "frames": frames, "rss_mib": round(held_mib(), 2),
                           **sdk_buffers(tracker, client, interceptor)}
                 samples.append(sample)
                 print(",".join(str(v) for v in sample.values()), flush=True)
@@ -180,7 +188,7 @@ def _track_live(seq, address: str, sample_s: float, fusion: str) -> list[dict]:
 
     def sample(p) -> None:
         sample = {"t_s": round(time.perf_counter() - start, 1), "frames": len(p.record.rows),
-                  "rss_mib": round(rss_mib(), 2)}
+                  "rss_mib": round(held_mib(), 2)}
         samples.append(sample)
         print(",".join(str(v) for v in sample.values()), flush=True)
 
