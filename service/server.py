@@ -145,7 +145,10 @@ def route_native_stderr() -> None:
     GRPC_VERBOSITY only when it is imported, before any code of ours runs; onnxruntime and others print too.
     Descriptor 2 becomes a pipe whose lines a thread logs; Python's own sys.stderr, and so the JSON handler,
     keeps the real one. Only `serve` calls this: it changes the whole process."""
-    real = os.dup(2)
+    try:
+        real = os.dup(2)
+    except OSError:  # no stderr at all: nothing to keep JSON
+        return
     read, write = os.pipe()
     with contextlib.suppress(AttributeError, OSError):  # Linux: room for bursts (64 kB by default)
         fcntl.fcntl(write, fcntl.F_SETPIPE_SZ, 1 << 20)
