@@ -75,7 +75,14 @@ def claiming_oracle() -> GtOracleEstimator:
 def ideal_run(oracle: common.OracleBackend, seq, ideal, options: ReplayOptions) -> TrackRecord:
     """The filter on `ideal` (`seq`'s program on a noise-free IMU; the filter still models `seq`'s IMU),
     answered by the claiming oracle: its covariances are the Riccati solution linearised at the truth."""
-    return oracle.run(replace(ideal, imu_noise=seq.imu_noise), common.FILTER, replace(options, estimator=CLAIMING))
+    return oracle.run(replace(ideal, imu_noise=seq.imu_noise), NOMINAL, replace(options, estimator=CLAIMING))
+
+
+# The Riccati bound is that of the nominal noise model (the yaml's densities): the filter measured against it
+# keeps that model. Its noise matching (`FilterOptions.match_imu_noise`) raises the densities where the answers'
+# innovations show more than the yaml; a short simulated run's start can (an 8 s translational hard cell at 30 FPS),
+# and its covariance is then no longer the one the bound is the Riccati solution of.
+NOMINAL = replace(common.FILTER, filter=replace(common.FILTER.filter, match_imu_noise=False))
 
 
 def run_cell(cell: common.GridCell) -> list:
@@ -85,7 +92,7 @@ def run_cell(cell: common.GridCell) -> list:
     ideal = common.simulated(cache, cell.spec(imu="ideal"))
     options = ReplayOptions(network=NetworkOptions(seed=cell.seed), estimator="noisy")
     with common.OracleBackend(noise_seed=cell.seed, in_process=cell.in_process, extra=(claiming_oracle(),)) as oracle:
-        measured = oracle.run(seq, common.FILTER, options)
+        measured = oracle.run(seq, NOMINAL, options)
         bounded = ideal_run(oracle, seq, ideal, options)
     s = measured.summarize()
     return [cell.motion, cell.level, cell.fps, cell.seed, s.proj_px, float(np.mean([r.proj_px for r in steady(measured)])),
