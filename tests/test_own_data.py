@@ -115,3 +115,18 @@ def test_experiment_euroc_that_scores_nothing_exits_non_zero(recording, tmp_path
     assert rc == 1
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("flextrack")]
     assert len(err) == 1 and "nothing scored" in err[0] and "in view in none" in err[0]
+
+
+def test_the_ablation_runs_on_a_hand_held_recording(recording, tmp_path):
+    """`experiment ablation --data`: the paper's variants on a recording without a still window start all the
+    same (init_require_still lifted), scored on the FINE frames in view as experiment euroc scores them."""
+    import csv
+
+    data, _ = recording
+    assert main(["experiment", "ablation", "--data", str(data), "--in-process", "--out", str(tmp_path)]) == 0
+    rows = list(csv.DictReader(open(tmp_path / "ablation.csv")))
+    assert {r["motion"] for r in rows} == {"my_walk"} and len(rows) == 12
+    full = {r["backend"]: float(r["proj_px"]) for r in rows if r["variant"] == "full"}
+    assert all(np.isfinite(v) for v in full.values())  # it started while moving
+    assert "init_require_still=False" in (tmp_path / "ablation.md").read_text()
+    assert json.loads((tmp_path / "ablation.json").read_text())["provenance"]["options"]["data"] == str(data)
