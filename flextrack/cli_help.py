@@ -52,7 +52,7 @@ EXAMPLES: dict[str, list[str]] = {
                   "# SEQ_DIR in the server config's sequence_roots")],
     "report": ["flextrack report --check", "flextrack report --list"],
     "evaluate": ["flextrack evaluate nees --out out/nees",
-                 ("flextrack evaluate prior --bop ../shared/data/lmo_cat --obj-id 6 --estimator region "
+                 ("flextrack evaluate prior --bop ../shared/data/lmo --obj-id all --estimator region --fresh "
                   "--out out/prior.json")],
 }
 

@@ -125,6 +125,50 @@ def test_region_converges_from_a_perturbed_prior_on_a_rendered_frame(region, ren
     assert refused <= 2, (before, after)
 
 
+def test_a_coarse_prior_starts_several_fits(region, rendered_frame):
+    """A prior unsure by 8 deg or more (a user lining up a guide view) starts fits from its mean and from it turned
+    by one sigma either way about each camera axis; a tight prior, from its mean alone. (What it buys on real frames:
+    docs/region.md, 20 mm / 10 deg and 30 mm / 15 deg.)"""
+    _, T = rendered_frame
+    R, t = T[:3, :3], T[:3, 3]
+    assert len(region._starts(R, t, diagonal_covariance(np.radians(5.0), 0.01))) == 1
+    starts = region._starts(R, t, diagonal_covariance(np.radians(15.0), 0.03))
+    assert len(starts) == 7 and all(np.array_equal(s[1], t) for s in starts)
+    turns = sorted(np.degrees(np.linalg.norm(so3.log(s[0] @ R.T))) for s in starts)
+    np.testing.assert_allclose(turns, [0.0] + [15.0] * 6, atol=1e-6)
+
+
+def test_the_flip_check_refuses_a_prior_turned_about_the_line_of_sight(default_object, rendered_frame, tmp_path):
+    """A prior turned 180 deg in the image but claiming 5 deg: with the flip check on, refused with a message that
+    says so; the same check leaves a good prior's answer alone."""
+    image, T = rendered_frame
+    cov = diagonal_covariance(np.radians(5.0), 0.01)
+    region = RegionEstimator("region", {"default": default_object}, views_subdivisions=SUBDIVISIONS, cache_dir=tmp_path,
+                             flip_margin=0.05)
+    center = region.viewpoint_model("default").center
+    flipped = region.estimate(EstimateInput(frame_id=0, capture_time_ns=0, camera=CAMERA, image=image,
+                                            prior_T_CO=se3.turned_about_line_of_sight(T, center), prior_covariance=cov))
+    assert flipped.status == Status.OBJECT_NOT_FOUND and "180 deg" in flipped.message, flipped.message
+    good = region.estimate(EstimateInput(frame_id=1, capture_time_ns=0, camera=CAMERA, image=image,
+                                         prior_T_CO=perturbed(T, np.random.default_rng(1), 0.005, 2.0),
+                                         prior_covariance=cov))
+    assert good.status == Status.OK and metrics.proj_px(good.T_CO, T, CAMERA, default_object.vertices) < 2.0
+
+
+def test_unmixing_recovers_histograms_from_mislabelled_samples():
+    """Samples labelled by an outline that is off: each side holds a share of the other's colours; unmixed with
+    that share, the histograms are the true ones again (clipped at 0)."""
+    true = ColourHistograms(bins=4)
+    true.fg, true.bg, true.initialised = np.zeros(64), np.zeros(64), True
+    true.fg[:8], true.bg[32:48] = 1 / 8, 1 / 16
+    mixed = ColourHistograms(bins=4)
+    mixed.fg, mixed.bg, mixed.initialised = 0.7 * true.fg + 0.3 * true.bg, 0.7 * true.bg + 0.3 * true.fg, True
+    back = mixed.unmixed(0.3)
+    np.testing.assert_allclose(back.fg, true.fg, atol=1e-12)
+    np.testing.assert_allclose(back.bg, true.bg, atol=1e-12)
+    assert mixed.unmixed(0.0).fg is not mixed.fg and np.array_equal(mixed.unmixed(0.0).fg, mixed.fg)
+
+
 def test_the_answers_covariance_leaves_the_prior_out(region, rendered_frame):
     """The device holds its prior; an answer that counted it in would make the device's filter count it
     twice at every frame. So a prior 100x more certain must not make the answer's covariance shrink."""

@@ -16,7 +16,7 @@ from flextrack.simulator import default_object
 from flextrack.simulator.render import Renderer, load_model
 from flextrack.simulator.scene import make_scene
 
-CAT = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo_cat" / "models" / "obj_000006.ply"
+CAT = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo" / "models" / "obj_000006.ply"
 DEFAULT_PLY = assets.default_object_model()  # generated on first use
 
 

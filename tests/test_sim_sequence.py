@@ -15,7 +15,7 @@ from flextrack.simulator.frames import SequenceFrames
 from flextrack.simulator.generate import generate_sequence
 from flextrack.simulator.plots import plot_sequence
 
-CAT = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo_cat" / "models" / "obj_000006.ply"
+CAT = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo" / "models" / "obj_000006.ply"
 
 
 @pytest.fixture(scope="module")

@@ -23,7 +23,7 @@ from estimators.region.session_store import SessionStore
 from estimators.region.viewpoint_model import ViewpointModel, cached_viewpoint_model
 from flextrack.geometry import se3, so3
 
-PARAMS = {"scales", "iterations_per_scale", "half_segments", "line_weight", "damping_rotation",
+PARAMS = {"scales", "iterations_per_scale", "coarse_iterations", "half_segments", "line_weight", "damping_rotation",
           "damping_translation", "covariance_inflation", "default_prior_sigma_m", "default_prior_sigma_deg",
           "bins", "learning_rate", "max_sessions", "max_session_age_s", "views_subdivisions", "contour_points",
           "cache_dir", "min_confidence", "histogram_px", "refit_scales", "refits", "margin_factors", "session_weight",
@@ -82,7 +82,7 @@ class RegionEstimator(Estimator):
         ids = spec.object_ids or spec.objects.ids()
         line = LineModel(half_segments=int(p.pop("half_segments", LineModel.half_segments)))
         opt = OptimizerConfig(line_model=line, **{k: p.pop(k) for k in list(p) if k in {
-            "iterations_per_scale", "line_weight", "damping_rotation", "damping_translation", "covariance_inflation"}})
+            "iterations_per_scale", "coarse_iterations", "line_weight", "damping_rotation", "damping_translation", "covariance_inflation"}})
         if "scales" in p:
             opt = replace(opt, scales=tuple(int(s) for s in p.pop("scales")))
         if "cache_dir" in p:

@@ -31,6 +31,7 @@ from flextrack.geometry import so3
 class OptimizerConfig:
     scales: tuple[int, ...] = (6, 4, 2, 1)  # segment sizes in px, coarse to fine
     iterations_per_scale: int = 2
+    coarse_iterations: int = 1  # iterations at scales of 4 px and more (the first, rough steps)
     line_model: LineModel = field(default_factory=LineModel)
     line_weight: float = 1.0  # multiplies every line's information (1 / variance)
     damping_rotation: float = 10000.0  # per-step Tikhonov, per rad^2 (tuned on the real cat, docs/region.md)
@@ -47,9 +48,14 @@ def line_jacobians(lines: Lines, K: np.ndarray, t: np.ndarray) -> np.ndarray:
     fx, fy = K[0, 0], K[1, 1]
     a = lines.normals[:, 0] * fx / z
     b = lines.normals[:, 1] * fy / z
-    dP = np.column_stack([a, b, -(a * P[:, 0] + b * P[:, 1]) / z])  # n^T d(uv)/dP
-    Q = P - t  # the rotated model point: dP/d_theta = -[Q]x, so n^T J_rot = Q x dP
-    return np.column_stack([np.cross(Q, dP), dP])
+    c = -(a * P[:, 0] + b * P[:, 1]) / z
+    Q = P - t  # the rotated model point: dP/d_theta = -[Q]x, so n^T J_rot = Q x dP, dP = (a, b, c) = n^T d(uv)/dP
+    J = np.empty((len(z), 6))
+    J[:, 0] = Q[:, 1] * c - Q[:, 2] * b
+    J[:, 1] = Q[:, 2] * a - Q[:, 0] * c
+    J[:, 2] = Q[:, 0] * b - Q[:, 1] * a
+    J[:, 3], J[:, 4], J[:, 5] = a, b, c
+    return J
 
 
 def pose_error(R: np.ndarray, t: np.ndarray, R_ref: np.ndarray, t_ref: np.ndarray) -> np.ndarray:
@@ -74,7 +80,7 @@ def optimize(frame: CellImage, K: np.ndarray, model: ViewpointModel, hist: Colou
     damping = np.diag([cfg.damping_rotation] * 3 + [cfg.damping_translation] * 3)
     H_image = np.zeros((6, 6))  # the image's information alone: the prior's is never subtracted back out
     for scale in scales or cfg.scales:
-        for _ in range(cfg.iterations_per_scale):
+        for _ in range(cfg.coarse_iterations if scale >= 4 else cfg.iterations_per_scale):
             lines = project_lines(model, R, t, K, shape)
             if lines is None:
                 return None

@@ -303,7 +303,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="every frame, or every other frame of each scene (even: the first, third, ...; "
                              "odd: the others), to score on frames that did not tune (default: %(default)s)")
     parser.add_argument("--min-visib", type=float, default=0.0,
-                        help="leave out instances less visible than this (BOP visib_fract, 0-1; default: %(default)s)")
+                        help="leave out instances less visible than this, a BOP visib_fract of 0-1 (default: %(default)s)")
     parser.add_argument("--limit", type=int, default=None, help="first N instances only")
     parser.add_argument("--fresh", action="store_true", help="every instance a new session (no colour history)")
     parser.add_argument("--flip", action="store_true",

@@ -17,7 +17,7 @@ the frames in a contact sheet.
 
     python -m flextrack.training.evaluate --model flextrack/assets/models/pvnet_default/pvnet.onnx --object default --out runs/eval
     python -m flextrack.training.evaluate --model runs/cat/pvnet.onnx --object .../obj_000006.ply \\
-        --bop ../shared/data/lmo_cat/test/000002 --obj-id 6 --out runs/eval_cat
+        --bop ../shared/data/lmo/test/000002 --obj-id 6 --out runs/eval_cat
 """
 
 from __future__ import annotations
