@@ -294,7 +294,10 @@ def render_euroc(folder: Path) -> str:
          "rule); `full` is the paper-faithful tracker, `bscm_off` the same without BSCM, `filter` the default."),
         "", *_cells(rows, [("variant", "variant", ""), ("position mm", "pos_mm", ".2f"), ("orientation deg", "ori_deg", ".2f"),
                            ("2D px", "proj_px", ".2f"), ("jitter px", "jitter_px", ".2f"), ("NEES", "nees_mean", ".1f"),
-                           ("worst FINE px", "worst_fine_px", ".2f")]),
+                           ("worst FINE px", "worst_fine_px", ".2f"), ("FINE share", "fine_share", ".2f"),
+                           ("offset ms", "time_offset_ms", ".2f"), ("sigma ms", "time_offset_sigma_ms", ".2f")]),
+        "", (f"Offset: the filter's camera-IMU time offset at the end; the gyroscope cross-correlated with the truth's "
+             f"angular rate gives {_num(rows[0]['offset_xcorr_ms']):.2f} ms."),
         "", provenance_line(prov, "flextrack experiment euroc --out out/euroc") + f" Files: "
         f"`{RESULTS_DIR.as_posix()}/{folder.name}/`."])
 
