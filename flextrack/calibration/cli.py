@@ -20,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from flextrack import provenance
-    from flextrack.calibration.imu import calibrate
+    from flextrack.calibration.imu import GLITCH, calibrate
     from flextrack.formats import kalibr
 
     if not args.data.is_dir():
@@ -48,6 +48,9 @@ def run(args: argparse.Namespace) -> int:
         (f"gyro minus the truth's rate: {found.gyro_residual_rms:.3f} rad/s RMS; accelerometer minus the truth's "
         f"specific force: {found.accel_residual_rms:.3f} m/s^2 RMS, {found.accel_residual_rms_lever:.3f} with a lever "
         f"arm of ({', '.join(f'{1000 * x:.1f}' for x in found.lever_arm_m)}) mm"),
+        (f"the truth jumped where the gyro did not (|gyro - its rate| over {GLITCH:g}x the median) at "
+         f"{len(found.truth_jumps)} moments" + (f", s from the start: {', '.join(f'{x:.1f}' for x in found.truth_jumps[:12])}"
+                                                 f"{' ...' if len(found.truth_jumps) > 12 else ''}" if found.truth_jumps else "")),
     ]
     print("\n".join(lines))
     if args.json:

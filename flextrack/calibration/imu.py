@@ -31,6 +31,8 @@ from flextrack.geometry import so3
 
 STANDARD_GRAVITY = 9.80665
 GRID_S = 0.001  # the cross-correlation's grid
+GLITCH = 8.0  # a gyro-truth disagreement this many times its median: the truth jumped (motion capture swaps
+# markers or loses them), the gyro did not; a tracker scored on that truth is scored wrong there
 MAX_OFFSET_S = 0.2  # searched either way
 SMOOTH_S = 0.03  # the cross-correlation's smoothing before it differentiates
 
@@ -53,6 +55,7 @@ class ImuCalibration:
     accel_residual_rms: float  # m/s^2 without a lever arm
     accel_residual_rms_lever: float  # m/s^2 with the fitted one
     lever_arm_m: tuple[float, float, float]  # truth's origin to the IMU, body frame
+    truth_jumps: list[float]  # seconds from the IMU's start where |gyro - the truth's rate| passed GLITCH x its median
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -224,13 +227,17 @@ def calibrate(data: Path) -> ImuCalibration:
     m = max(1, round(10.0 / nominal))
     k_rw = float(np.mean(allan_deviation(bias[inside], nominal, m)) / np.sqrt(m * nominal / 3.0))
     r, before, after = lever_arm(imu, gt, offset)
+    disagree = np.linalg.norm(resid, axis=1) * inside
+    jumps = np.flatnonzero(disagree > GLITCH * np.median(disagree[inside]))
+    starts = jumps[np.r_[True, np.diff(t[jumps]) > 0.5]] if len(jumps) else jumps
     return ImuCalibration(
         rate_hz=1.0 / nominal, gaps=int(np.sum(steps > 5 * nominal)), longest_gap_s=float(steps.max()),
         time_offset_ms=offset * 1e3, time_offset_peak=peak, still_s=float(still.sum() * nominal),
         gyroscope_noise_density=float(np.mean(g_ad) * np.sqrt(nominal)),
         accelerometer_noise_density=float(np.mean(a_ad) * np.sqrt(nominal)), noise_from=source,
         gyroscope_random_walk=k_rw, gyro_residual_rms=float(np.sqrt(np.mean(gyro_res ** 2) * 3)),
-        accel_residual_rms=before, accel_residual_rms_lever=after, lever_arm_m=tuple(float(x) for x in r))
+        accel_residual_rms=before, accel_residual_rms_lever=after, lever_arm_m=tuple(float(x) for x in r),
+        truth_jumps=[round(float(t[i] - t[0]), 2) for i in starts])
 
 
 def _file(data: Path, *names: str) -> Path:
