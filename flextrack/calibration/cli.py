@@ -38,7 +38,8 @@ def run(args: argparse.Namespace) -> int:
         (f"{args.data}: {found.rate_hz:.1f} Hz median, {found.gaps} gaps over 5 intervals (longest "
         f"{found.longest_gap_s:.3f} s), {found.still_s:.1f} s still"),
         (f"time offset (t_imu = t_camera + offset), gyro vs the truth's rate: {found.time_offset_ms:.2f} ms "
-        f"(peak correlation {found.time_offset_peak:.2f})"),
+         f"(peak correlation {found.time_offset_peak:.2f})" if found.time_offset_ms == found.time_offset_ms else
+         "time offset: the gyro against the truth's rate shows no clear peak within +-200 ms (the rest taken at 0)"),
         f"white noise from {'still stretches' if found.noise_from == 'still' else 'residuals against the truth (an upper bound)'}:"
         f" gyro {found.gyroscope_noise_density:.3g} rad/s/sqrt(Hz), accel {found.accelerometer_noise_density:.3g} "
         "m/s^2/sqrt(Hz)" + (f" (yaml: {stated.gyroscope_noise_density:.3g}, {stated.accelerometer_noise_density:.3g})"

@@ -71,8 +71,8 @@ def body_rates(gt: euroc.GroundTruth) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _highpass(x: np.ndarray, dt: float, tau_s: float) -> np.ndarray:
-    """x minus its moving average over tau_s (removes a bias that walks)."""
-    n = max(1, round(tau_s / dt))
+    """x minus its moving average over tau_s (removes a bias that walks; over all of x when shorter)."""
+    n = max(1, min(round(tau_s / dt), len(x)))
     kernel = np.ones(n) / n
     return x - np.stack([np.convolve(x[:, k], kernel, mode="same") for k in range(x.shape[1])], axis=1)
 
@@ -98,7 +98,8 @@ def _rate_change(t: np.ndarray, w: np.ndarray, grid: np.ndarray) -> np.ndarray:
 
 
 def time_offset(imu: euroc.ImuData, gt: euroc.GroundTruth) -> tuple[float, float]:
-    """(offset s, normalised peak correlation): gyro(t) best matches the truth's rate at t - offset."""
+    """(offset s, normalised peak correlation): gyro(t) best matches the truth's rate at t - offset (nan when
+    the best is at the edge of the +-MAX_OFFSET_S searched)."""
     t0 = int(imu.t_ns[0])
     t_gt, w_gt = body_rates(gt)
     t_gt = t_gt - t0 * 1e-9  # seconds from the first sample: 1 ms steps lose no precision
@@ -116,11 +117,11 @@ def time_offset(imu: euroc.ImuData, gt: euroc.GroundTruth) -> tuple[float, float
         b = ref[m - lag:m - lag + len(grid)][ok]
         score[n] = float(np.sum(a * b) / np.sqrt(np.sum(a * a) * np.sum(b * b)))
     k = int(np.argmax(score))
-    frac = 0.0
-    if 0 < k < len(lags) - 1:
-        y0, y1, y2 = score[k - 1:k + 2]
-        den = y0 - 2 * y1 + y2
-        frac = 0.5 * (y0 - y2) / den if den < 0 else 0.0
+    if not 0 < k < len(lags) - 1:  # the best at the search's edge: no peak (a recording too short or too still)
+        return float("nan"), float(score[k])
+    y0, y1, y2 = score[k - 1:k + 2]
+    den = y0 - 2 * y1 + y2
+    frac = 0.5 * (y0 - y2) / den if den < 0 else 0.0
     return float((lags[k] + frac) * GRID_S), float(score[k])
 
 
@@ -206,7 +207,8 @@ def calibrate(data: Path) -> ImuCalibration:
     t = imu.t_ns * 1e-9
     steps = np.diff(t)
     nominal = float(np.median(steps))
-    offset, peak = time_offset(imu, gt)
+    found_offset, peak = time_offset(imu, gt)
+    offset = found_offset if np.isfinite(found_offset) else 0.0  # the residuals below need some alignment
     tw, w_gt = body_rates(gt)
     w_at = _on_grid(tw + offset, w_gt, t)
     still = still_mask(imu, w_at)
@@ -232,7 +234,7 @@ def calibrate(data: Path) -> ImuCalibration:
     starts = jumps[np.r_[True, np.diff(t[jumps]) > 0.5]] if len(jumps) else jumps
     return ImuCalibration(
         rate_hz=1.0 / nominal, gaps=int(np.sum(steps > 5 * nominal)), longest_gap_s=float(steps.max()),
-        time_offset_ms=offset * 1e3, time_offset_peak=peak, still_s=float(still.sum() * nominal),
+        time_offset_ms=found_offset * 1e3, time_offset_peak=peak, still_s=float(still.sum() * nominal),
         gyroscope_noise_density=float(np.mean(g_ad) * np.sqrt(nominal)),
         accelerometer_noise_density=float(np.mean(a_ad) * np.sqrt(nominal)), noise_from=source,
         gyroscope_random_walk=k_rw, gyro_residual_rms=float(np.sqrt(np.mean(gyro_res ** 2) * 3)),

@@ -190,9 +190,10 @@ def report(rows: list[list], seq, seed: int, accounts: dict, fps: float) -> str:
         common.markdown_table(["variant", "position mm", "orientation deg", "2D projection px", "jitter px", "NEES",
                                "worst FINE px", "FINE / in view", "time offset ms", "its sigma ms"],
                               [[*r[:7], f"{100 * r[7]:.0f} %", *r[8:10]] for r in rows]), "",
-        (f"The time offset (t_imu = t_camera + offset) is the filter's online estimate at the end, with its standard "
-         f"deviation; the gyroscope cross-correlated with the ground truth's angular rate gives {rows[0][10]:.2f} ms "
-         "(`flextrack calibrate imu`)."), "",
+        ("The time offset (t_imu = t_camera + offset) is the filter's online estimate at the end, with its standard "
+         "deviation; the gyroscope cross-correlated with the ground truth's angular rate " + (
+             f"gives {rows[0][10]:.2f} ms" if np.isfinite(rows[0][10]) else "shows no clear peak (a recording too short "
+             "or too still)") + " (`flextrack calibrate imu`)."), "",
         ("Frames scored above: in view and FINE (the paper's rule); the jitter between consecutive such frames. What was and was not scored, and why (out of "
          "view: the object's centre not in the image or behind the camera; initialising: before the tracker's "
          "first pose; lost: in view but TRACKING_LOST / WRONG_POSE):"), "",
