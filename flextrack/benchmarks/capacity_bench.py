@@ -8,6 +8,11 @@ would set it from this figure), gets twice its capacity, one connection per devi
 up, refuse the excess devices at once with RESOURCE_EXHAUSTED (they wait as its retry pushback
 asks, as the SDK does) and keep the accepted frames' p99 bounded. `--max-queue` bounds each
 estimator's frame queue besides.
+
+`--tracking` sends the estimators' frames as a tracking device does: each with its prior (the
+sequence's true pose perturbed by a seeded draw of a 1 deg / 5 mm covariance, which it carries) and
+cut to the SDK's crop around it (client_sdk.crop), with 10 kB of tracker state: what `pvnet_region`
+(region on every frame) gets from devices that track.
 """
 
 from __future__ import annotations
@@ -63,6 +68,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--probe-nice", type=int, default=0,
                         help="the lone probe device's nice value; below 0 (root only) it runs ahead of the load "
                         "generator it shares a CPU with, as a phone has its own")
+    parser.add_argument("--tracking", action="store_true",
+                        help="the estimators' frames as a tracking device sends them: with a prior and cut to the "
+                             "SDK's crop around it (needs --sequence with rendered frames and ground truth)")
     parser.add_argument("--out", type=Path, default=Path("out/bench_capacity"),
                         help="folder for capacity.json and the servers' logs (default: %(default)s)")
 
@@ -75,6 +83,49 @@ def _toy_config(tmp: Path) -> tuple[Path, Path]:
     config.write_text(f'[server]\ndefault_estimator = "gt_oracle"\n\n[[estimators]]\nname = "gt_oracle"\n'
                       f'kind = "gt_oracle"\n[estimators.params]\nsequence_roots = ["{seq.root}"]\n')
     return config, seq.root
+
+
+TRACKING_STATE_BYTES = 10 * 1024  # the tracker state a device sends with each frame (client_state)
+PRIOR_STD_DEG, PRIOR_STD_M = 1.0, 0.005
+
+
+def _tracking_workload(root: Path, estimator: str, max_frames: int = 60, seed: int = 0) -> workload.Workload:
+    """Frames of a rendered sequence as a tracking device sends them: the prior, the crop around it, the state."""
+    import cv2
+    import numpy as np
+
+    from client_sdk.crop import crop_rect
+    from flextrack import wire
+    from flextrack.formats import sequence as sequence_io
+    from flextrack.geometry import se3, so3
+    from flextrack.geometry.camera import bbox_corners
+    from flextrack.runners.payload import frame_jpeg
+    from flextrack.runners.session import model_vertices
+    from flextrack.v1 import pose_estimation_pb2 as pb
+
+    seq = sequence_io.load(root)
+    corners = bbox_corners(model_vertices(seq))
+    cov = wire.diagonal_covariance(np.radians(PRIOR_STD_DEG), PRIOR_STD_M)
+    rng = np.random.default_rng(seed)
+    templates = []
+    for frame_id, t_ns in list(zip(seq.frame_ids, seq.frame_times_ns))[:max_frames]:
+        T_gt, path = seq.gt_T_CO.get(int(frame_id)), seq.rgb_path(int(frame_id))
+        if T_gt is None or not path.exists():
+            continue
+        e = rng.multivariate_normal(np.zeros(6), cov)
+        T_prior = se3.make(so3.exp(e[:3]) @ T_gt[:3, :3], T_gt[:3, 3] + e[3:])
+        rgb = cv2.imread(str(path), cv2.IMREAD_COLOR)[:, :, ::-1]
+        x, y, w, h = crop_rect(seq.camera, corners, T_prior, cov) or (0, 0, seq.camera.width, seq.camera.height)
+        req = pb.EstimateRequest(
+            estimator=estimator, capture_time_ns=int(t_ns), object_id=seq.object_id, sequence=seq.name,
+            intrinsics=wire.intrinsics_to_pb(seq.camera), crop=pb.Crop(x=x, y=y, width=w, height=h),
+            image=pb.Image(encoding=pb.Image.JPEG, data=frame_jpeg(rgb[y:y + h, x:x + w]), width=w, height=h),
+            prior=pb.PosePrior(pose=wire.pose_to_pb(T_prior), covariance=wire.covariance_to_pb(cov)),
+            client_state=rng.bytes(TRACKING_STATE_BYTES))
+        templates.append(workload.FrameTemplate(req.capture_time_ns, req.SerializeToString()))
+    if not templates:
+        raise ValueError(f"{root}: no rendered frames with ground truth (simulate it with --render)")
+    return workload.Workload(templates)
 
 
 def _ramp(name: str, spec: runner.LoadSpec, work: workload.Workload, args, out: Path) -> dict:
@@ -179,8 +230,14 @@ def run(args: argparse.Namespace) -> int:
         serve_args = ["--config", str(config), "--max-queue", str(args.max_queue), "--workers", str(args.workers),
                       "--log-level", "WARNING", *args.serve_arg]
         names = [n for n in args.estimators.split(",") if n]
-        works = {"echo": workload.synthetic(args.payload_kb, fps=args.fps),
-                 **{n: workload.from_sequence(sequence, args.payload_kb, n) for n in names}}
+        frames = (lambda n: _tracking_workload(sequence, n)) if args.tracking else \
+            (lambda n: workload.from_sequence(sequence, args.payload_kb, n))
+        try:
+            works = {"echo": workload.synthetic(args.payload_kb, fps=args.fps), **{n: frames(n) for n in names}}
+        except (ValueError, FileNotFoundError) as exc:
+            print(f"flextrack bench capacity: {exc}")
+            return 2
+        results["request_kb"] = {n: w.request_bytes / 1024 for n, w in works.items()}
         if args.capacity:
             results["backends"] = {n: {"capacity_clients": args.capacity, "given": True} for n in names}
         else:
