@@ -164,6 +164,8 @@ class PvnetEstimator(Estimator):
                                     f"(train one with `flextrack train pvnet`)")
         if min(o.search_px, o.full_search_px) < 64 * 64:
             raise ValueError(f"estimator '{name}': search_px and full_search_px must be at least 4096 (64x64)")
+        if o.window_px != 0 and o.window_px < 64:
+            raise ValueError(f"estimator '{name}': window_px must be 0 (the whole frame) or at least 64, got {o.window_px}")
         session_options = ort.SessionOptions()
         # No memory arena and no memory pattern: onnxruntime keeps both per input shape, and frames of several
         # shapes (or crops) made the server hold GBs; without them each run allocates and frees its own.

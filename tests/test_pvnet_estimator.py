@@ -192,6 +192,10 @@ def test_turned_crops_find_an_object_seen_upside_down(registry, rendered):
     assert outs[1].status != Status.OK or metrics.proj_px(outs[1].T_CO, T_rolled, CAMERA, verts) > 5.0
     with pytest.raises(ValueError, match="rotations"):
         PvnetEstimator(registry, SHIPPED, rotations=3)
+    with pytest.raises(ValueError, match="window_px"):
+        PvnetEstimator(registry, SHIPPED, window_px=10)
+    with pytest.raises(ValueError, match="search_px"):
+        PvnetEstimator(registry, SHIPPED, search_px=100)
 
 
 def test_contour_refinement_brings_a_pose_off_in_depth_and_rotation_back(registry, rendered):
