@@ -109,8 +109,9 @@ def test_a_backend_claiming_micrometres_does_not_break_the_filter_on_fast_motion
     """An exact oracle that claims 1e-6 deg and 10 nm: on 30 s of circular hard at 120 FPS the filter, before
     its update allowed for the time offset's products with the rates (and held the offset while the still
     start cannot show it), pulled the offset 20 ms off during the still start, gated the first moving answers
-    and re-initialised over and over (6.5 px, mean NEES 7000). Now it tracks to hundredths of a px and its
-    NEES is chi-square's."""
+    and re-initialised over and over (6.5 px, mean NEES 7000). Now it tracks to a fraction of a px, never
+    over-confident: the answers are weighed at the floor of what the tracker cannot know exactly
+    (FilterOptions.answer_floor_*: 0.1 deg, 1 mm; ~0.15 px here, 0.02 without it), so its NEES is below 6."""
     from estimators.gt_oracle import GtOracleEstimator
     from estimators.registry import EstimatorRegistry
 
@@ -120,8 +121,8 @@ def test_a_backend_claiming_micrometres_does_not_break_the_filter_on_fast_motion
     options = ReplayOptions(network=NetworkOptions(seed=0), estimator="gt")
     s = replay(seq, InProcessBackend(registry, options.network), session.model_vertices(seq), TrackerOptions(),
                options).summarize()
-    assert s.proj_px < 0.1 and s.worst_fine_px < 0.5, s
-    assert 5.0 < s.nees_mean < 7.0, s
+    assert s.proj_px < 0.25 and s.worst_fine_px < 1.0, s
+    assert 0.5 < s.nees_mean < 7.0, s
     assert s.status_counts.get("WRONG_POSE", 0) == 0, s.status_counts
 
 
