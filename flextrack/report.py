@@ -455,13 +455,21 @@ def render_region_lmo(folder: Path) -> str:
         hidden = [a for a in answers if a["visib"] is not None and a["visib"] < 0.3]
         lines.append(f"| {level} | {len(hidden)} | < 30 % | {_share(hidden, _under_5)} | | | OK > 20 px at most 2 % | "
                      f"**{_share(hidden, _ok_wrong)}** |")
-    flip_path = folder / "lmo_region_flip.json"
-    if flip_path.is_file():
-        flip = json.loads(flip_path.read_text())
-        for level, result in flip["levels"].items():
+    for name, label in (("lmo_region_flip", "prior turned 180 deg (`--flip`)"),
+                        ("lmo_region_flipcheck", "flip check on (`flip_check.toml`)"),
+                        ("lmo_region_flipcheck_flip", "prior turned 180 deg, flip check on")):
+        path = folder / f"{name}.json"
+        if not path.is_file():
+            continue
+        for level, result in json.loads(path.read_text())["levels"].items():
             answers = result["answers"]
-            lines.append(f"| {level}, prior turned 180 deg (`--flip`) | {len(answers)} | all | - | | | none OK > 20 px | "
-                         f"**{_share(answers, _ok_wrong)}** |")
+            seen = [a for a in answers if (a["visib"] or 0) >= 0.3]
+            halves = _halves(answers)
+            odd = [a for a in seen if (a["scene"], a["frame"]) in halves["odd"]]
+            even = [a for a in seen if (a["scene"], a["frame"]) in halves["even"]]
+            goal = "none OK > 20 px" if name.endswith("_flip") else ""
+            lines.append(f"| {level}, {label} | {len(seen)} | >= 30 % | {_share(seen, _under_5)} | "
+                         f"{_share(even, _under_5)} | {_share(odd, _under_5)} | {goal} | **{_share(seen, _ok_wrong)}** |")
     first = next(iter(main["levels"]))
     objects = [("| object | instances >= 30 % visible | < 5 px | ADD(-S) 10 % | OK yet > 20 px off | NEES mean "
                "(95 % interval of the mean) | NEES median |"), "|---|---:|---:|---:|---:|---:|---:|"]

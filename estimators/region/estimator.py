@@ -42,7 +42,7 @@ class RegionEstimator(Estimator):
                  default_prior_sigma_m: float = 0.02, default_prior_sigma_deg: float = 10.0, bins: int = 16,
                  learning_rate: float = 0.2, max_sessions: int = 1024, max_session_age_s: float = 600.0,
                  views_subdivisions: int = 4, contour_points: int = 200, cache_dir: str | Path | None = None,
-                 min_confidence: float = 0.3, histogram_px: int = 20, refit_scales: tuple[int, ...] = (2, 1),
+                 min_confidence: float = 0.3, histogram_px: int = 20, refit_scales: tuple[int, ...] = (1,),
                  refits: int = 1, margin_factors: tuple[float, float] = (0.5, 0.5), session_weight: float = 0.5,
                  retry_below: float = 0.45, retry_margin_factors: tuple[float, float] | None = (1.0, 2.0),
                  coarse_search: bool = True, unmix: float = 0.3, refit_unmix: float = 0.15,
