@@ -101,6 +101,8 @@ class CovariancePropagator:
 
     def match(self, gyro_density: float, accel_density: float) -> None:
         """Raise the densities to what the answers' innovations show (`eskf.noise_matching`; 0: no raise)."""
+        if (gyro_density, accel_density) == self._matched:  # the common case: Q (and its cache) unchanged
+            return
         self._matched = (gyro_density, accel_density)
         self._set_q(*map(max, self._seen, self._matched))
 

@@ -149,7 +149,8 @@ class FilterTracker(TrackerBase):
         buf.append(s, new)
 
     def _step(self, st: FilterState, t0: int, t1: int, s0: tuple, s1: tuple) -> FilterState:
-        seen = measured(t1, s0, s1, self._max_gap_ns)
+        gap = self._max_gap_ns  # `propagation.measured`, inline: this runs for every (re-)propagated sample
+        seen = s1[0] - s0[0] <= gap and t1 - s1[0] <= gap
         x = (step_midpoint if seen else step_silent)(st.x, st.c, t0, t1, s0, s1)
         cov = self._prop.step(st.cov, x, st.c, t0, t1, s0, s1, seen)
         phi = st.phi
