@@ -18,7 +18,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import pickle
 import tempfile
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
@@ -60,12 +59,40 @@ class FrameRow:
     index: int = 0  # position in the record
 
 
+_SCORES = ("proj_px", "pos_mm", "ori_deg", "jitter_px", "nees", "nees_rotation")
+_POSES = (("T_CO", (4, 4)), ("T_gt", (4, 4)), ("covariance", (6, 6)))  # NaN where the row has none
+ROW_DTYPE = np.dtype([("frame_id", "i8"), ("t_ns", "i8"), ("index", "i8"), ("status", "U32")]
+                     + [(name, "f8", shape) for name, shape in _POSES] + [(name, "f8") for name in _SCORES])
+
+
+def _rows_to_array(rows: list[FrameRow]) -> np.ndarray:
+    out = np.zeros(len(rows), ROW_DTYPE)
+    for k, row in enumerate(rows):
+        out[k]["frame_id"], out[k]["t_ns"], out[k]["index"], out[k]["status"] = \
+            row.frame_id, row.t_ns, row.index, row.status
+        for name, _ in _POSES:
+            value = getattr(row, name)
+            out[k][name] = np.nan if value is None else value
+        for name in _SCORES:
+            out[k][name] = getattr(row, name)
+    return out
+
+
+def _array_to_rows(rows: np.ndarray) -> list[FrameRow]:
+    def pose(value: np.ndarray) -> np.ndarray | None:
+        return None if np.isnan(value).all() else value.copy()
+
+    return [FrameRow(int(r["frame_id"]), int(r["t_ns"]), str(r["status"]), pose(r["T_CO"]), pose(r["T_gt"]),
+                     pose(r["covariance"]), *(float(r[name]) for name in _SCORES), index=int(r["index"]))
+            for r in rows]
+
+
 class RowStore(Sequence):
-    """A record's rows: all in memory, or with `keep` set, at most the last `keep` in memory and the older ones
-    pickled, `keep` at a time, to an anonymous temporary file. Why: a live run lasts as long as the device runs,
-    and one row a frame held in memory grows the process without end (~1 kB a frame, 3.5 MiB a minute at 60 FPS);
-    on disk the run's memory levels off, and the whole record is read back, a chunk at a time, only when it is
-    scored or written at the end."""
+    """A record's rows: all in memory, or with `keep` set, at most the last 2 x `keep` in memory and the older
+    ones, `keep` at a time, in an anonymous temporary file as numpy records (ROW_DTYPE, no Python objects).
+    Why: a live run lasts as long as the device runs, and one row a frame held in memory grows the process
+    without end (~1 kB a frame, 3.5 MiB a minute at 60 FPS); on disk the run's memory levels off, and the whole
+    record is read back, a chunk at a time, only when it is scored or written at the end."""
 
     def __init__(self, keep: int | None = None):
         if keep is not None and keep < 1:
@@ -88,7 +115,7 @@ class RowStore(Sequence):
         if self._file is None:
             self._file = tempfile.TemporaryFile(prefix="flextrack-rows-")  # noqa: SIM115 - closed with the record
         self._file.seek(0, 2)
-        pickle.dump(out, self._file, protocol=pickle.HIGHEST_PROTOCOL)
+        np.save(self._file, _rows_to_array(out), allow_pickle=False)
         self._spilled += len(out)
 
     def recent(self) -> list[FrameRow]:
@@ -102,10 +129,10 @@ class RowStore(Sequence):
         position, read = 0, 0
         while read < self._spilled:
             self._file.seek(position)
-            chunk = pickle.load(self._file)
+            chunk = np.load(self._file, allow_pickle=False)
             position = self._file.tell()
             read += len(chunk)
-            yield from chunk
+            yield from _array_to_rows(chunk)
         yield from list(self._recent)
 
     def __getitem__(self, index):
