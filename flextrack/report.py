@@ -456,8 +456,8 @@ def render_region_lmo(folder: Path) -> str:
         lines.append(f"| {level} | {len(hidden)} | < 30 % | {_share(hidden, _under_5)} | | | OK > 20 px at most 2 % | "
                      f"**{_share(hidden, _ok_wrong)}** |")
     for name, label in (("lmo_region_flip", "prior turned 180 deg (`--flip`)"),
-                        ("lmo_region_flipcheck", "flip check on (`flip_check.toml`)"),
-                        ("lmo_region_flipcheck_flip", "prior turned 180 deg, flip check on")):
+                        ("lmo_region_no_flip_check", "flip check off (`no_flip_check.toml`)"),
+                        ("lmo_region_no_flip_check_flip", "prior turned 180 deg, flip check off")):
         path = folder / f"{name}.json"
         if not path.is_file():
             continue

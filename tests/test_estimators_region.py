@@ -143,8 +143,7 @@ def test_the_flip_check_refuses_a_prior_turned_about_the_line_of_sight(default_o
     says so; the same check leaves a good prior's answer alone."""
     image, T = rendered_frame
     cov = diagonal_covariance(np.radians(5.0), 0.01)
-    region = RegionEstimator("region", {"default": default_object}, views_subdivisions=SUBDIVISIONS, cache_dir=tmp_path,
-                             flip_margin=0.05)
+    region = RegionEstimator("region", {"default": default_object}, views_subdivisions=SUBDIVISIONS, cache_dir=tmp_path)
     center = region.viewpoint_model("default").center
     flipped = region.estimate(EstimateInput(frame_id=0, capture_time_ns=0, camera=CAMERA, image=image,
                                             prior_T_CO=se3.turned_about_line_of_sight(T, center), prior_covariance=cov))

@@ -28,7 +28,8 @@ PARAMS = {"scales", "iterations_per_scale", "coarse_iterations", "half_segments"
           "bins", "learning_rate", "max_sessions", "max_session_age_s", "views_subdivisions", "contour_points",
           "cache_dir", "min_confidence", "histogram_px", "refit_scales", "refits", "margin_factors", "session_weight",
           "retry_below", "retry_margin_factors", "coarse_search", "unmix",
-          "refit_unmix", "multi_start_deg", "multi_start_sigmas", "flip_margin", "flip_check_below"}
+          "refit_unmix", "multi_start_deg", "multi_start_sigmas", "flip_check", "flip_margin",
+          "flip_check_below"}
 
 
 class RegionEstimator(Estimator):
@@ -46,8 +47,8 @@ class RegionEstimator(Estimator):
                  refits: int = 1, margin_factors: tuple[float, float] = (0.5, 0.5), session_weight: float = 0.5,
                  retry_below: float = 0.45, retry_margin_factors: tuple[float, float] | None = (1.0, 2.0),
                  coarse_search: bool = True, unmix: float = 0.3, refit_unmix: float = 0.15,
-                 multi_start_deg: float = 8.0, multi_start_sigmas: float = 1.0, flip_margin: float | None = None,
-                 flip_check_below: float = 1.2):
+                 multi_start_deg: float = 8.0, multi_start_sigmas: float = 1.0, flip_check: bool = True,
+                 flip_margin: float = 0.05, flip_check_below: float = 1.2):
         """`objects`: object id -> ObjectModel (estimators.objects)."""
         super().__init__(name, list(objects))
         self._objects = dict(objects)
@@ -69,7 +70,7 @@ class RegionEstimator(Estimator):
         self.coarse_search = coarse_search
         self.unmix, self.refit_unmix = unmix, refit_unmix
         self.multi_start_deg, self.multi_start_sigmas = multi_start_deg, multi_start_sigmas
-        self.flip_margin, self.flip_check_below = flip_margin, flip_check_below
+        self.flip_check, self.flip_margin, self.flip_check_below = flip_check, flip_margin, flip_check_below
         self._models: dict[str, ViewpointModel] = {}
         self._models_lock = threading.Lock()
         self.sessions: SessionStore[ColourHistograms] = SessionStore(
@@ -266,7 +267,7 @@ class RegionEstimator(Estimator):
                               self.retry_margin_factors)
             best = max(best, other, key=lambda fit: fit[0])
         score, confidence, result, lines = best
-        if result is not None and confidence >= self.min_confidence and self.flip_margin is not None \
+        if result is not None and confidence >= self.min_confidence and self.flip_check \
                 and (fresh or score < self.flip_check_below):
             flip_T = se3.turned_about_line_of_sight(inp.prior_T_CO, model.center)
             flip = (flip_T[:3, :3], flip_T[:3, 3])
