@@ -124,7 +124,7 @@ def test_the_ablation_runs_on_a_hand_held_recording(recording, tmp_path):
 
     data, _ = recording
     assert main(["experiment", "ablation", "--data", str(data), "--in-process", "--out", str(tmp_path)]) == 0
-    rows = list(csv.DictReader(open(tmp_path / "ablation.csv")))
+    rows = list(csv.DictReader((tmp_path / "ablation.csv").read_text().splitlines()))
     assert {r["motion"] for r in rows} == {"my_walk"} and len(rows) == 12
     full = {r["backend"]: float(r["proj_px"]) for r in rows if r["variant"] == "full"}
     assert all(np.isfinite(v) for v in full.values())  # it started while moving
