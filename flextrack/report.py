@@ -492,6 +492,45 @@ def render_region_lmo(folder: Path) -> str:
                       f"Files: `{RESULTS_DIR.as_posix()}/{folder.name}/`."])
 
 
+@section("jpeg_bound")
+def render_jpeg_bound(folder: Path) -> str:
+    """`flextrack bench jpeg-bound`: the CPU a hostile progressive JPEG's decode costs, and what is refused."""
+    data = json.loads((folder / "jpeg_bound.json").read_text())
+    lines = ["| frame | case | scans | bytes | CPU ms (median) | outcome |", "|---|---|---:|---:|---:|---|"]
+    for r in data["rows"]:
+        outcome = "refused" if r["outcome"].startswith("refused") else r["outcome"]
+        lines.append(f"| {r['size'].replace('x', ' x ')} | {r['case']} | {r['scans']:,} | {r['bytes'] / 1e6:.2f} MB | "
+                     f"{r['cpu_ms']:.1f} | {outcome} |")
+    return "\n".join([*lines, "", provenance_line(data["provenance"], "flextrack bench jpeg-bound --repeat 3")
+                      + f" Files: `{RESULTS_DIR.as_posix()}/{folder.name}/`."])
+
+
+@section("sdk_memory")
+def render_sdk_memory(folder: Path) -> str:
+    """`flextrack bench sdk-memory`: the client's held RSS over a long run, and its slope after the first minute."""
+    from flextrack.benchmarks.sdk_memory_bench import SETTLE_S
+
+    labels = {"track-live": "`track --live` (the runner and its record)", "sdk": "the SDK alone"}
+    lines = ["| runner | frames | held RSS at 60 s -> end | slope after the first minute |", "|---|---:|---:|---:|"]
+    sources = []
+    for path in sorted(folder.glob("*.json"), reverse=True):
+        data = json.loads(path.read_text())
+        prov = data["provenance"]
+        rows = read_csv(folder / data["files"][0])
+        t = np.array([_num(r["t_s"]) for r in rows])
+        rss = np.array([_num(r["rss_mib"]) for r in rows])
+        later = t >= SETTLE_S
+        slope = float(np.polyfit(t[later], rss[later], 1)[0] * 60) if later.sum() > 1 else 0.0
+        fps = prov["options"]["fps"]
+        at_60 = rss[later][0] if later.any() else rss[-1]
+        lines.append(f"| {labels.get(prov['options']['runner'], prov['options']['runner'])} | "
+                     f"{int(_num(rows[-1]['frames'])):,} | {at_60:.1f} -> {rss[-1]:.1f} MiB | **{slope:+.3f} MiB/min** "
+                     f"({slope * 1024 * 1024 / 60 / fps:+.0f} B a frame) |")
+        sources.append("- " + provenance_line(prov, f"flextrack bench sdk-memory --duration {prov['options']['duration']:g} "
+                                              f"--fps {fps:g} --runner {prov['options']['runner']}").removeprefix("Source: "))
+    return "\n".join([*lines, "", "Sources:", *sources, f"Files: `{RESULTS_DIR.as_posix()}/{folder.name}/`."])
+
+
 @section("pvnet_circular")
 def render_pvnet_circular(folder: Path) -> str:
     """pvnet alone (no prior: the global path of a first pose) on frames of the circular programs."""
