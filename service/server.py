@@ -66,11 +66,28 @@ class JsonLogFormatter(logging.Formatter):
         return json.dumps(doc, default=str)
 
 
+class CurrentStderrHandler(logging.StreamHandler):
+    """A stream handler on sys.stderr as it is when a record is emitted, not when the handler was made: whoever
+    replaces sys.stderr later (route_native_stderr; a test's capture, closed after it) is written to, never a
+    stream that has since been closed."""
+
+    def __init__(self) -> None:
+        super().__init__(sys.stderr)
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:  # StreamHandler sets it; the current sys.stderr is always used
+        pass
+
+
 def configure_logging(level: str = "INFO") -> None:
     """JSON lines on stderr for everything the process says: Python's warnings go through logging, and OpenCV's
     own log lines are off (images are decoded with Pillow, which prints nothing, service.request_decoding);
     what other native libraries print, `serve` routes (route_native_stderr)."""
-    handler = logging.StreamHandler()
+    handler = CurrentStderrHandler()
     handler.setFormatter(JsonLogFormatter())
     logging.basicConfig(level=level.upper(), handlers=[handler], force=True)
     logging.captureWarnings(True)
