@@ -471,15 +471,16 @@ def render_region_lmo(folder: Path) -> str:
             lines.append(f"| {level}, {label} | {len(seen)} | >= 30 % | {_share(seen, _under_5)} | "
                          f"{_share(even, _under_5)} | {_share(odd, _under_5)} | {goal} | **{_share(seen, _ok_wrong)}** |")
     first = next(iter(main["levels"]))
-    objects = [("| object | instances >= 30 % visible | < 5 px | ADD(-S) 10 % | OK yet > 20 px off | NEES mean "
-               "(95 % interval of the mean) | NEES median |"), "|---|---:|---:|---:|---:|---:|---:|"]
+    objects = [("| object | instances >= 30 % visible | < 5 px | ADD(-S) 10 % | OK yet > 20 px off (of the OK answers) "
+                "| NEES mean (95 % interval of the mean) | NEES median |"), "|---|---:|---:|---:|---:|---:|---:|"]
     answers = [a for a in main["levels"][first]["answers"] if (a["visib"] or 0) >= 0.3]
     for obj in sorted({a["obj_id"] for a in answers}):
         rows = [a for a in answers if a["obj_id"] == obj]
         nees = [a["nees"] for a in rows if a["nees"] is not None]
         lo, hi = (chi2.ppf([0.025, 0.975], 6 * len(nees)) / len(nees)) if nees else (np.nan, np.nan)
         objects.append(f"| {obj} | {len(rows)} | {_share(rows, _under_5)} | {_share(rows, lambda r: r['add_ok'])} | "
-                       f"{_share(rows, _ok_wrong)} | {np.mean(nees):.1f} ({lo:.1f}-{hi:.1f}) | {np.median(nees):.1f} |")
+                       f"{_share(rows, _ok_wrong)} ({_share([r for r in rows if r['proj_px'] is not None], _ok_wrong)}) | "
+                       f"{np.mean(nees):.1f} ({lo:.1f}-{hi:.1f}) | {np.median(nees):.1f} |")
     bands = ["| visible | instances | < 5 px | OK yet > 20 px off |", "|---|---:|---:|---:|"]
     for band, summary in main["levels"][first]["by_visib"].items():
         bands.append(f"| {band} | {summary['answers']} | {100 * summary['share_proj_5px']:.1f} % | "
