@@ -154,6 +154,22 @@ def test_the_flip_check_refuses_a_prior_turned_about_the_line_of_sight(default_o
     assert good.status == Status.OK and metrics.proj_px(good.T_CO, T, CAMERA, default_object.vertices) < 2.0
 
 
+def test_the_flip_check_leaves_an_answer_its_symmetry_explains(default_object, tmp_path):
+    """For an object symmetric under a half turn (eggbox and glue of LM-O), a fit and its turned twin are the same
+    pose: the flip check does not count that against the answer; for an object without that symmetry it does."""
+    from dataclasses import replace as replaced
+    from types import SimpleNamespace
+
+    half_turn = se3.make(so3.exp(np.array([0.0, 0.0, np.pi])), np.zeros(3))
+    symmetric = replaced(default_object, symmetries=np.stack([np.eye(4), half_turn]))
+    region = RegionEstimator("region", {"sym": symmetric, "plain": default_object}, views_subdivisions=SUBDIVISIONS,
+                             cache_dir=tmp_path)
+    R = so3.exp(np.array([0.4, -0.2, 0.1]))
+    a, b = SimpleNamespace(R=R @ half_turn[:3, :3]), SimpleNamespace(R=R)
+    assert region._symmetric("sym", a, b) and not region._symmetric("plain", a, b)
+    assert region._symmetric("plain", b, b)
+
+
 def test_unmixing_recovers_histograms_from_mislabelled_samples():
     """Samples labelled by an outline that is off: each side holds a share of the other's colours; unmixed with
     that share, the histograms are the true ones again (clipped at 0)."""

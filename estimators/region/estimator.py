@@ -160,6 +160,16 @@ class RegionEstimator(Estimator):
                     starts.append((so3.exp(d) @ R0, t0))
         return starts
 
+    def _symmetric(self, object_id: str, a, b, tolerance_deg: float = 10.0) -> bool:
+        """Whether two fitted poses are one another up to one of the object's symmetries (models_info.json): then
+        the turned prior fitting as well says nothing against the answer."""
+        if a is None or b is None:
+            return False
+        S = np.asarray(getattr(self._objects[object_id], "symmetries", np.eye(4)[None]), float)[:, :3, :3]
+        relative = np.einsum("ij,sjk->sik", b.R.T @ a.R, np.transpose(S, (0, 2, 1)))  # (R_b S)^T R_a per S
+        cos = (np.trace(relative, axis1=1, axis2=2) - 1.0) / 2.0
+        return bool(np.any(cos > np.cos(np.radians(tolerance_deg))))
+
     def _coarse_shift(self, frame: CellImage, hist: ColourHistograms, lines, prior_px: float, K: np.ndarray,
                       t0: np.ndarray) -> np.ndarray:
         """A translation (camera frame, m) moving the prior's silhouette, in the image plane, to where
@@ -273,7 +283,7 @@ class RegionEstimator(Estimator):
             flip = (flip_T[:3, :3], flip_T[:3, 3])
             alt = self._fit(frame, shape, K, model, hist, R0, t0, information, prior_px, self.margin_factors, flip,
                             prior_at_start=True)
-            if alt[0] >= score - self.flip_margin:
+            if alt[0] >= score - self.flip_margin and not self._symmetric(object_id, alt[2], result):
                 stage["optimize"] = (time.perf_counter() - t_opt) * 1e3
                 return EstimateOutput(Status.OBJECT_NOT_FOUND, message=(
                     f"the prior looks wrong for its claimed uncertainty: the pose turned 180 deg about the line of "
