@@ -73,6 +73,7 @@ class AdmissionInterceptor(grpc.aio.ServerInterceptor):
         # counts under one label: a client's raw strings must not grow the counters or the metrics page
         self.resolve = resolve or (lambda name: LOADING_ESTIMATORS)
         self._depth: dict[str, int] = defaultdict(int)  # the event loop is one thread: no lock needed
+        self.stopping = False  # set when the server stops: a stream cancelled then ends quietly
 
     def depth(self, estimator: str) -> int:
         return self._depth[estimator]
@@ -183,11 +184,20 @@ class AdmissionInterceptor(grpc.aio.ServerInterceptor):
                         self._set_depth(estimator, -1)
                     self._observe("Track", estimator, pb.EstimateResponse.Status.Name(response.status), started)
                     yield response
+            except asyncio.CancelledError:
+                if not self.stopping:
+                    raise
+                # gRPC cancels the streams still open at the end of a stop, wherever they wait: end quietly, the
+                # process is leaving (raised, gRPC would print the CancelledError's traceback on stderr)
             finally:
                 self.streams -= 1
                 if self.metrics:
                     self.metrics.set_streams(self.streams)
-                await answers.aclose()  # the servicer waits at its last answer: end it there
+                try:
+                    await answers.aclose()  # the servicer waits at its last answer: end it there
+                except asyncio.CancelledError:
+                    if not self.stopping:
+                        raise
 
         return track
 

@@ -225,6 +225,8 @@ class RunningServer:
         stopping = asyncio.ensure_future(self.server.stop(grace_s + ABANDON_S))
         await asyncio.wait([stopping], timeout=grace_s)
         self.servicer.abandon()
+        if self.hardening is not None and self.hardening.admission is not None:
+            self.hardening.admission.stopping = True
         await stopping
         if self.metrics_http is not None:
             self.metrics_http.shutdown()

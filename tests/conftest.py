@@ -1,16 +1,28 @@
 """In CI (environment CI=true) a skipped test is a failure, unless it skips because the data under
 ../shared is absent (real recordings that a clone does not carry). What a test needs beyond that
 (nginx, hadolint, the dev extra) is installed by `make test`, so a skip there means CI did not run it.
+Each test leaves the root logger's handlers as it found them: a test that runs `serve` in-process installs
+the service's JSON handler, whose lines would otherwise land in later tests' captured stderr.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 
 import pytest
 
 ALLOWED_IN_CI = re.compile(r"shared[/ ]data")  # the reason names ../shared/data or "the shared data folder"
+
+
+@pytest.fixture(autouse=True)
+def _root_log_handlers_restored():
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    yield
+    root.handlers[:] = handlers
+    root.setLevel(level)
 
 
 def _in_ci() -> bool:
