@@ -485,8 +485,9 @@ def render_region_lmo(folder: Path) -> str:
     for band, summary in main["levels"][first]["by_visib"].items():
         bands.append(f"| {band} | {summary['answers']} | {100 * summary['share_proj_5px']:.1f} % | "
                      f"{100 * summary['share_ok_wrong']:.1f} % |")
-    sources = [f"- `{p.name}`: " + provenance_line(json.loads(p.read_text()), json.loads(p.read_text()).get("command"))
-               .removeprefix("Source: ") for p in sorted(folder.glob("*.json"))]
+    docs = {p.name: json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))}
+    sources = [f"- `{name}`: " + provenance_line(doc, doc.get("command")).removeprefix("Source: ")
+               for name, doc in docs.items()]
     return "\n".join([*lines, "", (f"Per object, {first}, instances at least 30 % visible (NEES: chi-square(6), "
                       "mean 6, median 5.35; against the nearest symmetric pose):"), "", *objects, "",
                       f"Per visibility band, {first}, every instance:", "", *bands, "", "Sources:", *sources,

@@ -122,29 +122,21 @@ class RegionEstimator(Estimator):
         sigma = np.sqrt(np.maximum(np.diag(covariance), 0.0))
         return float(f * (np.hypot(sigma[3], sigma[4]) + radius_m * np.hypot(sigma[0], sigma[1])))
 
-    def _confidence(self, frame: CellImage, hist: ColourHistograms, lines) -> float:
-        """How well the colours agree with the outline: mean foreground posterior a few px inside minus
-        a few px outside, over the lines (0: no agreement, 1: perfect)."""
+    def _agreement(self, frame: CellImage, hist: ColourHistograms, lines, agree: float = 0.2) -> tuple[float, float]:
+        """How well the colours agree with the outline, from the foreground posteriors 1-4 px inside and outside
+        each line (sampled once): the confidence, their mean inside minus outside over all lines (0: none,
+        1: perfect), and the support, the share of lines whose own difference is above `agree` (the colours
+        step from object to background where the outline says)."""
         offsets = np.arange(1, 5, dtype=float)
         fg, fg_in = sample_pixels(frame, lines, -offsets + 0.5)
         bg, bg_in = sample_pixels(frame, lines, offsets + 0.5)
-        pf = hist.posterior(fg)
-        pb = hist.posterior(bg)
         if not fg_in.any() or not bg_in.any():
-            return 0.0
-        return float(np.clip(pf[fg_in].mean() - pb[bg_in].mean(), 0.0, 1.0))
-
-    def _support(self, frame: CellImage, hist: ColourHistograms, lines, agree: float = 0.2) -> float:
-        """The share of the outline's lines whose colours step from object to background where the outline
-        says: per line, the mean foreground posterior 1-4 px inside minus 1-4 px outside above `agree`."""
-        offsets = np.arange(1, 5, dtype=float)
-        fg, fg_in = sample_pixels(frame, lines, -offsets + 0.5)
-        bg, bg_in = sample_pixels(frame, lines, offsets + 0.5)
-        pf = np.where(fg_in, hist.posterior(fg), np.nan)
-        pb = np.where(bg_in, hist.posterior(bg), np.nan)
+            return 0.0, 0.0
+        pf, pb = hist.posterior(fg), hist.posterior(bg)
+        confidence = float(np.clip(pf[fg_in].mean() - pb[bg_in].mean(), 0.0, 1.0))
         with np.errstate(invalid="ignore"):
-            step = np.nanmean(pf, axis=1) - np.nanmean(pb, axis=1)
-        return float(np.mean(np.nan_to_num(step, nan=0.0) > agree))
+            step = np.nanmean(np.where(fg_in, pf, np.nan), axis=1) - np.nanmean(np.where(bg_in, pb, np.nan), axis=1)
+        return confidence, float(np.mean(np.nan_to_num(step, nan=0.0) > agree))
 
     def _starts(self, R0: np.ndarray, t0: np.ndarray, cov: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
         """Where fits start: the prior's mean, and, when its rotation is unsure by more than `multi_start_deg`
@@ -234,8 +226,8 @@ class RegionEstimator(Estimator):
         lines = None if result is None else project_lines(model, result.R, result.t, K, shape)
         if lines is None:
             return -1.0, -1.0, None, None
-        confidence = self._confidence(frame, work, lines)
-        return confidence + self._support(frame, work, lines), confidence, result, lines
+        confidence, support = self._agreement(frame, work, lines)
+        return confidence + support, confidence, result, lines
 
     def estimate(self, inp: EstimateInput) -> EstimateOutput:
         start = time.perf_counter()
