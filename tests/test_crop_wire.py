@@ -11,14 +11,13 @@ import pytest
 from client_sdk.crop import CropOptions, crop_rect, projection_std_px, request_crop
 from client_sdk.refinement import RefinementRequest
 from client_sdk.transport import make_request
-from estimators.objects import ObjectRegistry, load_object
+from estimators.objects import ObjectRegistry
 from estimators.pnp import PnpEstimator
-from estimators.region.estimator import RegionEstimator
-from estimators.region.viewpoint_model import look_at
 from estimators.registry import EstimatorRegistry
-from flextrack import assets, wire
+from flextrack import wire
 from flextrack.geometry import metrics, se3, so3
 from flextrack.geometry.camera import PinholeCamera, bbox_corners
+from flextrack.testing.region_scene import rendered_region_scene
 from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
 from service.server import BackgroundServer
@@ -29,17 +28,7 @@ PRIOR_COV = wire.diagonal_covariance(np.radians(2), 0.004)
 
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
-    from flextrack.simulator.render import Renderer
-
-    obj = load_object("default", assets.default_object_model())
-    region = RegionEstimator("region", {"default": obj}, views_subdivisions=2,
-                             cache_dir=tmp_path_factory.mktemp("region_cache"))
-    model = region.viewpoint_model("default")
-    R, t = look_at(model.directions[12], model.center, 0.8)
-    T = se3.make(R, t)
-    with Renderer(CAMERA, obj.model_path) as renderer:
-        frame = renderer.render(T)
-    rgb = np.where(frame.mask[..., None], frame.rgb, np.uint8(90))
+    region, obj, T, rgb = rendered_region_scene(tmp_path_factory.mktemp("region_cache"), CAMERA)
     registry = EstimatorRegistry([region, PnpEstimator(ObjectRegistry([obj]), object_ids=["default"])],
                                  objects=ObjectRegistry([obj]))
     with BackgroundServer(registry) as server, grpc.insecure_channel(server.address) as channel:

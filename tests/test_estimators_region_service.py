@@ -10,13 +10,12 @@ import pytest
 
 from estimators.base import EstimateOutput, Estimator, Status
 from estimators.chained import ChainedEstimator
-from estimators.objects import ObjectRegistry, load_object
-from estimators.region.estimator import RegionEstimator
-from estimators.region.viewpoint_model import look_at
+from estimators.objects import ObjectRegistry
 from estimators.registry import EstimatorRegistry
-from flextrack import assets, wire
+from flextrack import wire
 from flextrack.geometry import metrics, se3, so3
 from flextrack.geometry.camera import PinholeCamera
+from flextrack.testing.region_scene import rendered_region_scene
 from flextrack.v1 import pose_estimation_pb2 as pb
 from flextrack.v1 import pose_estimation_pb2_grpc as pb_grpc
 from service.server import BackgroundServer
@@ -40,17 +39,7 @@ class Fixed(Estimator):
 
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
-    from flextrack.simulator.render import Renderer
-
-    obj = load_object("default", assets.default_object_model())
-    region = RegionEstimator("region", {"default": obj}, views_subdivisions=2,
-                             cache_dir=tmp_path_factory.mktemp("region_cache"))
-    model = region.viewpoint_model("default")
-    R, t = look_at(model.directions[12], model.center, 0.8)
-    T = se3.make(R, t)
-    with Renderer(CAMERA, obj.model_path) as renderer:
-        frame = renderer.render(T)
-    image = np.where(frame.mask[..., None], frame.rgb, np.uint8(90))
+    region, obj, T, image = rendered_region_scene(tmp_path_factory.mktemp("region_cache"), CAMERA)
     png = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))[1].tobytes()
     chained = ChainedEstimator("tracking", Fixed(T), region)
     registry = EstimatorRegistry([region, chained], objects=ObjectRegistry([obj]))
