@@ -87,13 +87,6 @@ def step_midpoint(x: tuple, c: tuple, t0_ns: int, t1_ns: int, s0: tuple, s1: tup
     )
 
 
-def step_silent(x: tuple, c: tuple, t0_ns: int, t1_ns: int, s0: tuple, s1: tuple) -> tuple:
-    """Over an interval the IMU did not measure (a gap in its stream): no turn, no acceleration; the
-    covariance says how little that means (`eskf.propagator`)."""
-    dt = (t1_ns - t0_ns) * NS
-    return tuple(x[0:9]) + (x[9] + dt * x[12], x[10] + dt * x[13], x[11] + dt * x[14]) + tuple(x[12:15])
-
-
 def measured(t1_ns: int, s0: tuple, s1: tuple, max_gap_ns: int) -> bool:
     """Whether the IMU measured an interval ending at t1 between samples s0, s1 (at or before it and after
     it, or the newest twice): not across a gap longer than max_gap_ns, nor that far past the newest."""

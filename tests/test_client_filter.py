@@ -295,6 +295,40 @@ def test_a_gap_in_the_imu_stream_is_uncertain_not_fine():
     assert np.all(np.isfinite(gap.covariance)) and np.trace(gap.covariance) > 100 * np.trace(quiet.covariance)
 
 
+def test_answers_alone_carry_the_pose_through_a_gap_in_the_imu_stream():
+    """Across a 2 s gap of the IMU's stream the filter turns and moves at the rates the answers show
+    (`eskf.coasting`): frames in the gap stay within a few px, those the answers keep certain are FINE, and the
+    gyro bias comes back as it was when the samples do."""
+    m = Motion(still_s=0.5, ramp_s=0.5)
+    tracker = FilterTracker(TrackerOptions(), CAMERA, T_BC, BOX_O)
+    answer = noisy_answers(m, 0.3, seed=1)
+    imu_ns = [k * 5_000_000 for k in range(1, 1201) if not 2.0 <= k * 0.005 < 4.0]
+    frame_ns = [k * 16_666_667 + 1_000_000 for k in range(1, 355)]
+    events = sorted([(t, 0) for t in imu_ns] + [(t, 2) for t in frame_ns])
+    pending, gap_px, gap_fine, bias_before = [], [], 0, None
+    for t, kind in events:
+        while pending and pending[0][0] <= t:
+            _, rid, cap = pending.pop(0)
+            tracker.on_backend_response(rid, cap, answer(cap * 1e-9), True, NOISY_COV)
+        if kind == 0:
+            w, f = m.imu(t * 1e-9)
+            tracker.add_imu(t, w, f)
+            continue
+        if bias_before is None and t > 1_990_000_000:
+            bias_before = tracker.state.b_g.copy()
+        r = tracker.add_frame(t)
+        if 2.5e9 < t < 4.0e9:  # the gap, after its first half second
+            gap_px.append(proj_px(r.T_CO, m.T_CO(t * 1e-9), CAMERA, BOX_O))
+            gap_fine += r.status is Status.FINE
+            assert np.all(np.isfinite(r.covariance))
+            assert np.allclose(tracker.state.b_g, bias_before, atol=1e-4)  # the bias, not the gap's rate (~0.2 rad/s)
+        if r.request is not None:
+            pending.append((t + 50_000_000, r.request.request_id, r.request.frame_t_ns))
+    assert np.mean(gap_px) < 4.0 and max(gap_px) < 15.0  # 3.3 and 13 px (holding the turn: ~100 px by the end)
+    assert gap_fine > 0.2 * len(gap_px)  # 23 of 90: the motion model's guess until 20 answers fit it
+    assert np.allclose(tracker.state.b_g, bias_before, atol=1e-3)
+
+
 def test_an_exact_answer_is_weighed_at_the_floor():
     """However exact a backend's pose, the extrinsic and the frame time are not (answer_floor_*): after an
     answer claiming nanometres the pose's variance stays near the floor's, not at the answer's."""

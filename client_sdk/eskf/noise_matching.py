@@ -45,6 +45,11 @@ class NoiseMatcher:
         self.fit = 0.0  # the squared density the answers show (unbiased, scattered)
         self.density = 0.0  # the fit less two standard errors, the least the answers insist on (0 at most)
 
+    @property
+    def ready(self) -> bool:
+        """Whether the fit rests on enough answers to be used (`MIN_ANSWERS`)."""
+        return self._count >= MIN_ANSWERS
+
     def add(self, r2: float, trace_s: float, density_now: float, dt: float, trace_s2: float | None = None) -> None:
         """One answer: |r|^2 and tr(S) of its block, the density S was built with, the interval since the
         last answer; `trace_s2` tr(S_block^2) (default: as for an isotropic block, tr(S)^2 / 3)."""

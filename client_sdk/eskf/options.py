@@ -43,13 +43,22 @@ class FilterOptions:
 
     max_imu_gap_s: float = 0.05
     """An interval between IMU samples longer than this (or a time this far past the newest sample) was not
-    measured: a phone's stream stops for seconds at times. The state then coasts (no turn, no
-    acceleration) and its covariance grows at the hand-motion densities below, so that the pose is
-    honestly uncertain (not FINE) until the IMU is back, and the answers keep it on track meanwhile."""
-    silent_gyro_density: float = 0.5
-    """rad/s/sqrt(Hz): the unmeasured turn of a hand-held device (~1 rad/s over a few answers' intervals)."""
-    silent_accel_density: float = 2.0
-    """m/s^2/sqrt(Hz): its unmeasured acceleration."""
+    measured: a phone's stream stops for seconds at times. The state then goes on at the angular rate and
+    velocity the answers show (a constant-velocity model, `eskf.coasting`), its covariance growing at the
+    hand-motion densities below, so that the answers alone keep the pose on track, and FINE as far as they
+    keep it certain."""
+    gap_angular_accel_density: float = 3.0
+    """rad/s^2/sqrt(Hz): a hand's unmeasured angular acceleration (~1 rad/s changing within ~0.3 s), the
+    motion model's guess until the answers show (`match_gap_noise`)."""
+    gap_accel_density: float = 2.0
+    """m/s^2/sqrt(Hz): its unmeasured linear acceleration, likewise."""
+    gap_rate_std: float = 1.0
+    """rad/s, per axis: the angular rate's uncertainty when a gap starts with no recent gyro sample (a start
+    inside a gap)."""
+    match_gap_noise: bool = True
+    """Fit the two hand-motion densities to the answers' innovations across gaps (covariance matching, the
+    fit itself: over `noise_match_answers` answers), so that the pose's uncertainty is what the hand's
+    motion makes it."""
 
     # --- Initial uncertainty (1 sigma, per axis) ---
     init_velocity_std: float = 0.3

@@ -92,9 +92,11 @@ def pose_covariance(H: np.ndarray, cov: np.ndarray) -> np.ndarray:
 
 
 def update(state: FilterState, td: float, T_CO_meas: np.ndarray, sigma: np.ndarray, R_CB: np.ndarray,
-           t_CB: np.ndarray, w: tuple, w_var: float, gate_chi2: float, gravity_state: bool) -> UpdateResult:
+           t_CB: np.ndarray, w: tuple, w_var: float, gate_chi2: float, gravity_state: bool,
+           offset_observable: bool = True) -> UpdateResult:
     """One ESKF update of `state` (the state at the measurement's time) with a backend T_CO; `w` the
-    bias-corrected gyro rate there, `w_var` its sample noise's variance per axis."""
+    bias-corrected gyro rate there, `w_var` its sample noise's variance per axis; not `offset_observable`
+    (in a gap of the IMU's stream, where the rate is the answers' own) the time offset is not corrected."""
     R_CO, Rp, H = pose_jacobian(state.x, R_CB, w, state.x[12:15])
     r = np.empty(6)
     r[0:3] = so3.log(T_CO_meas[:3, :3] @ R_CO.T)
@@ -110,11 +112,11 @@ def update(state: FilterState, td: float, T_CO_meas: np.ndarray, sigma: np.ndarr
     if not np.isfinite(chi2) or chi2 > gate_chi2:
         return UpdateResult(False, chi2, None, td, None, r, S)
     K = np.dot(PHt, S_inv)
-    if not excited:
+    if not (excited and offset_observable):
         K[TD] = 0.0
     dx = np.dot(K, r)
     IKH = _I - np.dot(K, H)
     cov = np.dot(np.dot(IKH, P0), IKH.T) + np.dot(np.dot(K, sigma), K.T)
     cov = 0.5 * (cov + cov.T)
     x, c, td = inject(state.x, state.c, td, dx, gravity_state)
-    return UpdateResult(True, chi2, FilterState(x, c, cov), td, IKH, r, S)
+    return UpdateResult(True, chi2, FilterState(x, c, cov, None, state.held), td, IKH, r, S)

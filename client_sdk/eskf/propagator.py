@@ -61,7 +61,6 @@ class CovariancePropagator:
         self._matched = (0.0, 0.0)  # the densities the answers' innovations show (`match`)
         self._n2 = np.zeros(2)  # running estimate of the squared white-noise density, gyro and accel
         self._pending: list[tuple] = []  # the samples not yet in it, and the three before them
-        self._silent = (options.silent_gyro_density ** 2, options.silent_accel_density ** 2)
         self._phi = _IDENTITY.copy()
         self._phi_dt = 0.0  # the interval the +-dt entries of _phi hold
         self._set_q(*self._densities)
@@ -133,19 +132,17 @@ class CovariancePropagator:
         """Phi of the last `step` with a positive interval (a view, overwritten by the next)."""
         return self._phi
 
-    def step(self, cov: np.ndarray, x: tuple, c: tuple, t0_ns: int, t1_ns: int, s0: tuple, s1: tuple,
-             measured: bool = True) -> np.ndarray:
-        """The covariance at t1 from the one at t0; s0, s1 the raw IMU samples around the interval; not
-        `measured`: an interval in a gap of the IMU's stream (`propagation.step_silent`)."""
+    @property
+    def walks(self) -> tuple[float, float]:
+        """The bias random walks (gyro rad/s^2/sqrt(Hz), accel m/s^3/sqrt(Hz))."""
+        return self._walks
+
+    def step(self, cov: np.ndarray, x: tuple, c: tuple, t0_ns: int, t1_ns: int, s0: tuple, s1: tuple) -> np.ndarray:
+        """The covariance at t1 from the one at t0; s0, s1 the raw IMU samples around the interval (measured:
+        a gap in the IMU's stream is `eskf.coasting`'s)."""
         dt = (t1_ns - t0_ns) * NS
         if dt <= 0:
             return cov
-        if not measured:
-            phi = self.transition(x, dt, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
-            out = np.dot(np.dot(phi, cov), phi.T)
-            q = np.array([self._silent[0]] * 3 + [self._silent[1]] * 3 + list(self._q_density[6:])) * dt
-            out.ravel()[_Q_INDEX] += q
-            return out
         w = (0.5 * (s0[1] + s1[1]) - c[0], 0.5 * (s0[2] + s1[2]) - c[1], 0.5 * (s0[3] + s1[3]) - c[2])
         a = (0.5 * (s0[4] + s1[4]) - c[3], 0.5 * (s0[5] + s1[5]) - c[4], 0.5 * (s0[6] + s1[6]) - c[5])
         phi = self.transition(x, dt, w, a)

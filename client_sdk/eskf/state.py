@@ -37,6 +37,8 @@ class FilterState:
     cov: np.ndarray  # (N, N)
     phi: np.ndarray | None = None  # (N, N) the error transition from the last anchor, kept only while
     # the filter records its error dynamics (`eskf.error_dynamics`)
+    held: tuple | None = None  # in a gap of the IMU's stream (`eskf.coasting`): (b_g, its 3x3 covariance, the
+    # gap's start ns) kept aside while the slot of b_g holds minus the angular rate
 
 
 def inject(x: tuple, c: tuple, td: float, dx: np.ndarray, gravity_state: bool = True) -> tuple[tuple, tuple, float]:

@@ -34,16 +34,17 @@ import numpy as np
 
 from client_sdk import initialization
 from client_sdk import state as state_codec
+from client_sdk.eskf import coasting
 from client_sdk.eskf.error_dynamics import ErrorDynamics
 from client_sdk.eskf.initializer import initial_state
 from client_sdk.eskf.noise_matching import NoiseMatcher, blocks
 from client_sdk.eskf.pose_update import pose_covariance, pose_jacobian, update
 from client_sdk.eskf.propagator import CovariancePropagator
-from client_sdk.eskf.state import TD, FilterState
+from client_sdk.eskf.state import BG, TD, FilterState
 from client_sdk.imu_buffer import ImuBuffer
 from client_sdk.inspection import PoseInspector, Status
 from client_sdk.options import TrackerOptions
-from client_sdk.propagation import measured, rotate, step_midpoint, step_silent
+from client_sdk.propagation import NS, measured, rotate, step_midpoint
 from client_sdk.refinement import ResponseOutcome
 from client_sdk.state import TrackerState
 from client_sdk.tracker_base import FrameResult, TrackerBase, as_int, check_rigid, imu_sample
@@ -53,6 +54,17 @@ from flextrack.geometry.camera import PinholeCamera
 
 _DEG = np.pi / 180.0
 SETTLE_ANSWERS = 20  # answers after a (re-)initialisation before the noise fits take them
+
+
+def _within_wire(cov: np.ndarray) -> np.ndarray:
+    """A pose covariance scaled down, rotation and translation blocks apart, to the wire's largest meaningful
+    standard deviations (`wire.MAX_STD_RAD`, `wire.MAX_STD_M`): a pose coasted for seconds across a gap of
+    the IMU's stream is that uncertain, and a prior beyond them is refused as nonsense (it says as little)."""
+    d = np.diagonal(cov)
+    k = np.ones(6)
+    k[0:3] = min(1.0, 0.99 * wire.MAX_STD_RAD / max(d[0:3].max(), 1e-300) ** 0.5)
+    k[3:6] = min(1.0, 0.99 * wire.MAX_STD_M / max(d[3:6].max(), 1e-300) ** 0.5)
+    return cov if (k == 1.0).all() else cov * np.outer(k, k)
 
 
 class FilterTracker(TrackerBase):
@@ -76,6 +88,7 @@ class FilterTracker(TrackerBase):
         self._max_gap_ns = round(fo.max_imu_gap_s * 1e9)
         self._matchers = (NoiseMatcher(fo.noise_match_answers, 1), NoiseMatcher(fo.noise_match_answers, 3)) \
             if fo.match_imu_noise else None
+        self._gap_noise = coasting.GapNoise(fo, fo.noise_match_answers)
         self._floor_var = np.array([(fo.answer_floor_rotation_deg * _DEG) ** 2] * 3
                                    + [fo.answer_floor_translation_m ** 2] * 3)
         self._default_sigma = np.diag([(fo.default_rotation_std_deg * _DEG) ** 2] * 3
@@ -125,7 +138,8 @@ class FilterTracker(TrackerBase):
             return None
         t = self.now_ns
         st = self._nominal_at(t)
-        return TrackerState.from_tuples(t, st.x, st.c)
+        c = st.c if st.held is None else tuple(st.held[0]) + tuple(st.c[3:])  # the gyro bias, not a gap's rate
+        return TrackerState.from_tuples(t, st.x, c)
 
     @property
     def covariance(self) -> np.ndarray | None:
@@ -150,13 +164,34 @@ class FilterTracker(TrackerBase):
 
     def _step(self, st: FilterState, t0: int, t1: int, s0: tuple, s1: tuple) -> FilterState:
         gap = self._max_gap_ns  # `propagation.measured`, inline: this runs for every (re-)propagated sample
-        seen = s1[0] - s0[0] <= gap and t1 - s1[0] <= gap
-        x = (step_midpoint if seen else step_silent)(st.x, st.c, t0, t1, s0, s1)
-        cov = self._prop.step(st.cov, x, st.c, t0, t1, s0, s1, seen)
-        phi = st.phi
-        if phi is not None and t1 > t0:  # recording the error dynamics
-            phi = self._prop.last_transition @ phi
-        return FilterState(x, st.c, cov, phi)
+        if s1[0] - s0[0] <= gap and t1 - s1[0] <= gap:
+            if st.held is not None:
+                st = self._leave_gap(st, t0)
+            x = step_midpoint(st.x, st.c, t0, t1, s0, s1)
+            cov = self._prop.step(st.cov, x, st.c, t0, t1, s0, s1)
+            phi = st.phi
+            if phi is not None and t1 > t0:  # recording the error dynamics
+                phi = self._prop.last_transition @ phi
+            return FilterState(x, st.c, cov, phi)
+        if st.held is None:  # an interval the IMU did not measure: `eskf.coasting`
+            fresh = t0 - s0[0] <= gap
+            st = coasting.enter(st, t0, s0[1:4] if fresh else None, self._rate_noise_var(t0) if fresh else 0.0,
+                                self.options.filter.gap_rate_std)
+        dt = (t1 - t0) * NS
+        if dt <= 0:
+            return st
+        q_alpha, q_a = self._gap_noise.densities
+        cov, phi_step = coasting.step_cov(st.cov, st.c, dt, q_alpha, q_a, self._prop.walks[1])
+        phi = None if st.phi is None else phi_step @ st.phi
+        return FilterState(coasting.step_x(st.x, st.c, dt), st.c, cov, phi, st.held)
+
+    def _leave_gap(self, st: FilterState, t: int) -> FilterState:
+        st = coasting.leave(st, t, self._prop.walks[0])
+        if st.phi is None:
+            return st
+        phi = st.phi.copy()
+        phi[BG, :] = 0.0  # the bias's error from here on is unrelated to the gap's rate error
+        return replace(st, phi=phi)
 
     def _base_at(self, t: int) -> tuple[int, int, FilterState] | None:
         """(buffer index at or before t, base time, base state): the anchor or the stored state before t."""
@@ -191,13 +226,15 @@ class FilterTracker(TrackerBase):
         if t == base_t or not self._buf.samples:
             return st
         s0, s1 = self._samples_around(i)
-        if with_covariance:
+        if with_covariance or st.held is not None or not measured(t, s0, s1, self._max_gap_ns):
             return self._step(st, base_t, t, s0, s1)
-        step = step_midpoint if measured(t, s0, s1, self._max_gap_ns) else step_silent
-        return FilterState(step(st.x, st.c, base_t, t, s0, s1), st.c, st.cov)
+        return FilterState(step_midpoint(st.x, st.c, base_t, t, s0, s1), st.c, st.cov)
 
-    def _rate_at(self, t: int, c: tuple) -> tuple:
-        """The bias-corrected gyro rate (body) of the newest sample at or before t."""
+    def _rate_at(self, t: int, st: FilterState) -> tuple:
+        """The bias-corrected gyro rate (body) of the newest sample at or before t (in a gap: the rate `st` holds)."""
+        if st.held is not None:
+            return coasting.rate(st.c)
+        c = st.c
         buf = self._buf
         i = max(buf.index_at_or_before(t), 0)
         s = buf.samples[i]
@@ -229,7 +266,7 @@ class FilterTracker(TrackerBase):
                          [0.0, 0.0, 0.0, 1.0]])
 
     def _pose_jacobian(self, st: FilterState, t_imu: int) -> np.ndarray:
-        return pose_jacobian(st.x, self._R_CB, self._rate_at(t_imu, st.c), st.x[12:15])[2]
+        return pose_jacobian(st.x, self._R_CB, self._rate_at(t_imu, st), st.x[12:15])[2]
 
     def pose_at(self, t_ns: int) -> np.ndarray | None:
         """T_CO at camera time t_ns (None before initialisation; ValueError before the buffer)."""
@@ -250,7 +287,7 @@ class FilterTracker(TrackerBase):
         st = self._full_at(t_imu)
         if st is None:
             raise ValueError(f"no state at {t} ns: before tracking started or older than the IMU buffer")
-        return pose_covariance(self._pose_jacobian(st, t_imu), st.cov)
+        return _within_wire(pose_covariance(self._pose_jacobian(st, t_imu), st.cov))
 
     def sigma_px(self, T_CO: np.ndarray, cov: np.ndarray) -> float:
         """RMS over the box corners of the 1-sigma 2D uncertainty (px) a pose covariance implies."""
@@ -380,9 +417,16 @@ class FilterTracker(TrackerBase):
             self._initialize(tau, T, sigma)
             return self._outcome(ResponseOutcome.INITIALIZED, "tracking: initialised from the first backend pose" + note)
         st = self._full_at(tau)
-        res = update(st, self._td, T, sigma, self._R_CB, self._t_CB, self._rate_at(tau, st.c),
-                     self._rate_noise_var(tau), fo.gate_chi2, fo.gravity_state)
-        self._match_noise(res, (tau - self._anchor[0]) * 1e-9)
+        age_s = (tau - self._anchor[0]) * NS
+        if st.held is not None and age_s > self.options.max_backend_age_s:
+            self._initialize(tau, T, sigma)  # the answers alone carried the pose; without them it is gone
+            return self._outcome(ResponseOutcome.INITIALIZED, f"no backend pose for {age_s:.1f} s in a gap of the "
+                                 "IMU's stream: re-initialised from the backend's pose")
+        in_gap = st.held is not None
+        res = update(st, self._td, T, sigma, self._R_CB, self._t_CB, self._rate_at(tau, st),
+                     0.0 if in_gap else self._rate_noise_var(tau), fo.gate_chi2, fo.gravity_state,
+                     offset_observable=not in_gap)
+        self._match_noise(res, st, (tau - self._anchor[0]) * 1e-9)
         if not res.accepted:
             self._rejected += 1
             if self._rejected < fo.max_rejections:
@@ -407,18 +451,26 @@ class FilterTracker(TrackerBase):
             self._ease = (self._ease_left(t_shown) + jump, t_shown)
         return self._outcome(ResponseOutcome.APPLIED, "tracking" + note)
 
-    def _match_noise(self, res, dt: float) -> None:
-        """Feed an answer's innovation to the noise fits (`eskf.noise_matching`) and use what they say. A gated
-        answer counts as one on the gate (an outlier's size says nothing of the IMU; that the filter gated it
-        may: too little process noise); one across a gap of the IMU's stream not at all, nor the first
-        SETTLE_ANSWERS after a (re-)initialisation (a start's transient is no IMU noise: a simulated 8 s run
-        at 30 FPS had its densities raised by it)."""
+    def _match_noise(self, res, st: FilterState, dt: float) -> None:
+        """Feed an answer's innovation to the noise fits and use what they say: the IMU's (`eskf.noise_matching`)
+        when the IMU measured everything since the last answer, the hand motion's (`eskf.coasting`) when both
+        answers lie in one gap of its stream, none across a gap's edge. A gated answer counts as one on the
+        gate (an outlier's size says nothing of the noise; that the filter gated it may: too little process
+        noise); the first SETTLE_ANSWERS after a (re-)initialisation not at all (a start's transient is no
+        noise: a simulated 8 s run at 30 FPS had its densities raised by it)."""
         self._since_start += 1
-        if (self._matchers is None or res.residual is None or self._since_start <= SETTLE_ANSWERS
-                or not self._measured_since(self._anchor[0])):
+        if res.residual is None:
+            return
+        shrink = min(1.0, self.options.filter.gate_chi2 / res.chi2) if res.chi2 > 0 else 1.0
+        anchor = self._anchor[1]
+        if st.held is not None:
+            if anchor.held is not None and anchor.held[2] == st.held[2]:
+                Rp = self._t_CB - self._T_CO(st.x)[:3, 3]
+                self._gap_noise.add(res.residual * shrink ** 0.5, res.S, Rp, dt)
+            return
+        if self._since_start <= SETTLE_ANSWERS or self._matchers is None or not self._measured_since(self._anchor[0]):
             return
         now = self._prop.densities
-        shrink = min(1.0, self.options.filter.gate_chi2 / res.chi2) if res.chi2 > 0 else 1.0
         for m, d, (r2, trace_s, trace_s2) in zip(self._matchers, now, blocks(res.residual, res.S)):
             m.add(r2 * shrink, trace_s, d, dt, trace_s2)
         self._prop.match(self._matchers[0].density, self._matchers[1].density)
