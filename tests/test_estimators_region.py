@@ -184,6 +184,18 @@ def test_unmixing_recovers_histograms_from_mislabelled_samples():
     assert mixed.unmixed(0.0).fg is not mixed.fg and np.array_equal(mixed.unmixed(0.0).fg, mixed.fg)
 
 
+def test_the_logit_table_is_each_cells_clipped_log_odds():
+    """The lines read a pixel's log-odds from one table a histogram pair: empty cells are not certainty."""
+    hist = ColourHistograms(bins=4)
+    hist.fg, hist.bg, hist.initialised = np.zeros(64), np.zeros(64), True
+    hist.fg[:8], hist.bg[4:12] = 1 / 8, 1 / 8
+    table = hist.logits(0.02)
+    cells = np.array([0, 5, 10, 40])  # foreground only, both alike, background only, neither
+    p = np.clip(hist.posterior(cells), 0.02, 0.98)
+    np.testing.assert_allclose(table[cells], np.log(p / (1 - p)))
+    np.testing.assert_allclose(table[cells], [np.log(49), 0.0, -np.log(49), 0.0], atol=1e-9)
+
+
 def test_the_answers_covariance_leaves_the_prior_out(region, rendered_frame):
     """The device holds its prior; an answer that counted it in would make the device's filter count it
     twice at every frame. So a prior 100x more certain must not make the answer's covariance shrink."""

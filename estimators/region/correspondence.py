@@ -11,6 +11,7 @@ which the optimizer treats as a Gaussian measurement of the projected contour po
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -75,13 +76,13 @@ class CellImage:
 
 
 def sample_pixels(frame: CellImage, lines: Lines, offsets_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Cells (M, S) at the pixels nearest to centre + offset * normal, and which lay in the frame's region."""
-    xy = lines.centers[:, None, :] + offsets_px[None, :, None] * lines.normals[:, None, :]
-    x = np.floor(xy[..., 0]).astype(np.int32) - frame.x0
-    y = np.floor(xy[..., 1]).astype(np.int32) - frame.y0
+    """Cells (M, S) at the pixels nearest to centre + offset * normal, and which lay in the frame's region
+    (a pixel off it reads as cell 0: only the mask says which are real)."""
     h, w = frame.cells.shape
-    inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
-    return frame.cells[np.clip(y, 0, h - 1), np.clip(x, 0, w - 1)], inside
+    x = np.floor(lines.centers[:, :1] + offsets_px[None, :] * lines.normals[:, :1]).astype(np.intp) - frame.x0
+    y = np.floor(lines.centers[:, 1:] + offsets_px[None, :] * lines.normals[:, 1:]).astype(np.intp) - frame.y0
+    inside = (x.astype(np.uintp) < w) & (y.astype(np.uintp) < h)  # negatives wrap to huge: one test a side
+    return frame.cells.ravel().take(np.where(inside, y * w + x, 0)), inside
 
 
 @dataclass(frozen=True)
@@ -93,10 +94,11 @@ class LineModel:
     pixels_per_segment: int = 2  # pixels sampled per segment (each standing for scale / n of them)
 
 
-def contour_distributions(frame: CellImage, hist: ColourHistograms, lines: Lines, scale: int,
+def contour_distributions(frame: CellImage, logits: np.ndarray, lines: Lines, scale: int,
                           cfg: LineModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per line: the mean (px, along the normal, from the centre) and variance (px^2) of the contour
-    position, and whether the line carried information (both colours seen)."""
+    position, and whether the line carried information (both colours seen). `logits`: each histogram
+    cell's clipped foreground log-odds (`ColourHistograms.logits(PIXEL_CLIP)`)."""
     H = cfg.half_segments
     seg = np.arange(-H, H) + 0.5  # segment centres, segments
     # each segment is `scale` pixels; its posterior multiplies its pixels' (log-odds summed), of at most
@@ -105,18 +107,16 @@ def contour_distributions(frame: CellImage, hist: ColourHistograms, lines: Lines
     sub = (np.arange(n) + 0.5) / n - 0.5
     offsets = ((seg[:, None] + sub[None, :]) * scale).ravel()
     cells, inside = sample_pixels(frame, lines, offsets)
-    p = np.clip(hist.posterior(cells), PIXEL_CLIP, 1 - PIXEL_CLIP)
-    logit = np.log(p) - np.log1p(-p)
+    logit = logits[cells]
     # pixels beyond the object's other side (inwards) or another part of it (outwards), and off the
     # image, carry nothing
     usable = inside & (offsets[None, :] > -lines.fg_px[:, None]) & (offsets[None, :] < lines.bg_px[:, None])
     logit = np.where(usable, logit, 0.0).reshape(len(lines.centers), 2 * H, n).sum(axis=2) * (scale / n)
-    p_seg = 1.0 / (1.0 + np.exp(-np.clip(logit, -30, 30)))  # (M, 2H)
-    D = H - 2
-    d = np.arange(-D, D + 1, dtype=float)  # candidate contour positions, segments
-    hf = 0.5 - cfg.amplitude * np.tanh((seg[None, :] - d[:, None]) / (2 * cfg.slope))  # (2D+1, 2H)
-    # log-likelihood of each candidate: sum over segments of log(h_f p + h_b (1 - p))
-    ll = np.log(hf[None, :, :] * p_seg[:, None, :] + (1 - hf[None, :, :]) * (1 - p_seg[:, None, :])).sum(axis=2)
+    p_seg = (1.0 / (1.0 + np.exp(-np.clip(logit, -30, 30)))).astype(np.float32)  # (M, 2H)
+    d, stay, flip = _step_model(H, cfg.amplitude, cfg.slope)
+    # log-likelihood of each candidate d: the sum over segments of log(h_f p + (1 - h_f) (1 - p)), that is
+    # log((1 - h_f) + (2 h_f - 1) p), in float32 (the segments' terms lie in [0.07, 1]: no precision is lost)
+    ll = np.log(stay[None, :, :] + flip[None, :, :] * p_seg[:, None, :]).sum(axis=2, dtype=np.float64)
     ll -= ll.max(axis=1, keepdims=True)
     prob = np.exp(ll)
     prob /= prob.sum(axis=1, keepdims=True)
@@ -126,5 +126,17 @@ def contour_distributions(frame: CellImage, hist: ColourHistograms, lines: Lines
     # contour is not pressed against the end of the range; a line across an occluder (background on
     # both sides) or along the object's print (foreground on both) would pull the pose wrongly
     lean = p_seg - 0.5
+    D = len(d) // 2
     informative = (lean[:, :H].sum(axis=1) > 0) & (lean[:, H:].sum(axis=1) < 0) & (np.abs(mean) < D - 0.5)
     return mean * scale, np.maximum(var * scale**2, cfg.min_variance_px2), informative
+
+
+@functools.lru_cache(maxsize=8)
+def _step_model(half_segments: int, amplitude: float, slope: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The candidate contour positions d (segments, within 2 of the line's ends) and, per candidate and
+    segment, 1 - h_f and 2 h_f - 1 of SRT3D's smoothed step h_f(x) = 1/2 - amplitude tanh(x / (2 slope))."""
+    seg = np.arange(-half_segments, half_segments) + 0.5
+    D = half_segments - 2
+    d = np.arange(-D, D + 1, dtype=float)
+    hf = 0.5 - amplitude * np.tanh((seg[None, :] - d[:, None]) / (2 * slope))  # (2D+1, 2H)
+    return d, (1 - hf).astype(np.float32), (2 * hf - 1).astype(np.float32)

@@ -67,6 +67,12 @@ class ColourHistograms:
         out.fg, out.bg, out.initialised = fg / max(fg.sum(), 1e-12), bg / max(bg.sum(), 1e-12), True
         return out
 
+    def logits(self, clip: float) -> np.ndarray:
+        """log(p / (1 - p)) of every cell's foreground posterior p kept in [clip, 1 - clip] (a histogram's empty
+        cell is not certainty): one table lookup a pixel instead of a division and two logs."""
+        p = np.clip(self.posterior(np.arange(self.bins**3)), clip, 1 - clip)
+        return np.log(p) - np.log1p(-p)
+
     def posterior(self, cells: np.ndarray) -> np.ndarray:
         """P(foreground | colour) for each cell index, in (0, 1)."""
         f, b = self.fg[cells], self.bg[cells]

@@ -21,7 +21,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estimators.region.correspondence import CellImage, LineModel, Lines, contour_distributions, project_lines
+from estimators.region.correspondence import (
+    PIXEL_CLIP,
+    CellImage,
+    LineModel,
+    Lines,
+    contour_distributions,
+    project_lines,
+)
 from estimators.region.histograms import ColourHistograms
 from estimators.region.viewpoint_model import ViewpointModel
 from flextrack.geometry import so3
@@ -78,13 +85,14 @@ def optimize(frame: CellImage, K: np.ndarray, model: ViewpointModel, hist: Colou
     config's); None when no lines fall in view."""
     R, t = (R0.copy(), t0.copy()) if start is None else (start[0].copy(), start[1].copy())
     damping = np.diag([cfg.damping_rotation] * 3 + [cfg.damping_translation] * 3)
+    logits = hist.logits(PIXEL_CLIP)
     H_image = np.zeros((6, 6))  # the image's information alone: the prior's is never subtracted back out
     for scale in scales or cfg.scales:
         for _ in range(cfg.coarse_iterations if scale >= 4 else cfg.iterations_per_scale):
             lines = project_lines(model, R, t, K, shape)
             if lines is None:
                 return None
-            mean, var, informative = contour_distributions(frame, hist, lines, scale, cfg.line_model)
+            mean, var, informative = contour_distributions(frame, logits, lines, scale, cfg.line_model)
             J = line_jacobians(lines, K, t)[informative]
             w = cfg.line_weight / var[informative]
             H_image = (J * w[:, None]).T @ J
