@@ -46,9 +46,9 @@ class NoiseMatcher:
         self.density = 0.0  # the fit less two standard errors, the least the answers insist on (0 at most)
 
     @property
-    def ready(self) -> bool:
-        """Whether the fit rests on enough answers to be used (`MIN_ANSWERS`)."""
-        return self._count >= MIN_ANSWERS
+    def early_fit(self) -> float | None:
+        """The squared density's fit from the first answer on (`fit` waits for MIN_ANSWERS; None before any)."""
+        return None if self._den <= 0 else self._num / self._den
 
     def add(self, r2: float, trace_s: float, density_now: float, dt: float, trace_s2: float | None = None) -> None:
         """One answer: |r|^2 and tr(S) of its block, the density S was built with, the interval since the
