@@ -60,11 +60,13 @@ def _within_wire(cov: np.ndarray) -> np.ndarray:
     """A pose covariance scaled down, rotation and translation blocks apart, to the wire's largest meaningful
     standard deviations (`wire.MAX_STD_RAD`, `wire.MAX_STD_M`): a pose coasted for seconds across a gap of
     the IMU's stream is that uncertain, and a prior beyond them is refused as nonsense (it says as little)."""
-    d = np.diagonal(cov)
-    k = np.ones(6)
-    k[0:3] = min(1.0, 0.99 * wire.MAX_STD_RAD / max(d[0:3].max(), 1e-300) ** 0.5)
-    k[3:6] = min(1.0, 0.99 * wire.MAX_STD_M / max(d[3:6].max(), 1e-300) ** 0.5)
-    return cov if (k == 1.0).all() else cov * np.outer(k, k)
+    d = cov.diagonal().tolist()  # floats: this runs on every request's prior
+    kr = min(1.0, 0.99 * wire.MAX_STD_RAD / max(max(d[0:3]), 1e-300) ** 0.5)
+    kt = min(1.0, 0.99 * wire.MAX_STD_M / max(max(d[3:6]), 1e-300) ** 0.5)
+    if kr == 1.0 and kt == 1.0:
+        return cov
+    k = np.array([kr] * 3 + [kt] * 3)
+    return cov * np.outer(k, k)
 
 
 def _carried(st: FilterState, before: FilterState) -> FilterState:
