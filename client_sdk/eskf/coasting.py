@@ -31,6 +31,7 @@ import numpy as np
 
 from client_sdk.eskf.noise_matching import NoiseMatcher
 from client_sdk.eskf.options import FilterOptions
+from client_sdk.eskf.pose_update import skew
 from client_sdk.eskf.state import BG, TH, FilterState, N, P, V
 from client_sdk.propagation import NS, rotate
 
@@ -108,10 +109,6 @@ def step_cov(cov: np.ndarray, c: tuple, dt: float, q_alpha: float, q_a: float, a
     return out, phi
 
 
-def _skew(v) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 class GapNoise:
     """The two hand-motion densities in use, fitted to the answers' innovations across gaps."""
 
@@ -139,7 +136,7 @@ class GapNoise:
         if not self._adapt:
             return
         M = np.eye(6)
-        M[3:6, 0:3] = -_skew(Rp)  # r_t - [Rp]x r_rot: the position's part, free of the rotation error's
+        M[3:6, 0:3] = -skew(Rp)  # r_t - [Rp]x r_rot: the position's part, free of the rotation error's
         r2, S2 = M @ r, M @ S @ M.T
         now = self.densities
         for m, d, lo in zip(self._matchers, now, (0, 3)):
