@@ -1,7 +1,10 @@
 """The `pvnet` estimator: a PVNet-style network (onnxruntime), RANSAC keypoint voting, then PnP.
 
 Per frame: the image is halved (area averaging) and the network predicts the object mask and, per
-pixel, unit vectors towards the object's keypoints. The largest mask component locates the object
+pixel, unit vectors towards the object's keypoints. The whole-frame searches run the model's int8
+copy where it has one (`search_model`; 3.4 times faster on a CPU core, and the search only has
+to find the object), the crop pass voted on the float model: int8 there moved the poses' ADD by
+1.7 mm on average and cost 2.5 % ADD on the held-out frames (docs/pvnet.md, Speed). The largest mask component locates the object
 (objects that look small there are looked for again at full resolution); a second pass on a crop
 scaled so that the object's box is about `zoom_object_px` wide (the sizes it was mostly trained
 on, and more pixels on small far objects) gives the field that is voted on; that crop is also
@@ -80,7 +83,11 @@ class PvnetOptions:
     refine: bool = True  # refine the pose on the object's outline
     min_outline_fit: float = 0.7  # with refine: no pose when less of its outline lies on edges
     device: str = "auto"  # "cpu" to keep off CUDA
-    threads: int = 0  # onnxruntime intra-op threads (0: its default)
+    search_model: str = "auto"  # the network of the whole-frame searches: "auto", the model's int8 copy
+    # `<model>_int8.onnx` beside it where there is one (`flextrack train pvnet-quantize`), else the model; "same":
+    # the model; or a path. The crop pass voted on always runs the model itself (docs/pvnet.md, Speed)
+    threads: int = 1  # onnxruntime intra-op threads per call (0: its default, every core); the service runs
+    # calls on several worker threads at once, and one core a call gives the most frames per core
     keypoint_floor_px: float = KEYPOINT_FLOOR_PX
     keypoint_inflation: float = KEYPOINT_INFLATION
     refine_floor_px: float = REFINE_FLOOR_PX
@@ -103,6 +110,39 @@ def _providers(device: str) -> list[str]:
     available = ort.get_available_providers()
     wanted = ["CPUExecutionProvider"] if device == "cpu" else ["CUDAExecutionProvider", "CPUExecutionProvider"]
     return [p for p in wanted if p in available]
+
+
+def _session(path: Path, o: PvnetOptions):
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    # Every graph optimisation (constant folding, Conv+BatchNorm+Relu fusion, the CPU's blocked NCHWc
+    # layout) and one operator at a time: a batch-1 pass of this small network has no parallel branches.
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    # No memory arena and no memory pattern: onnxruntime keeps both per input shape, and frames of several
+    # shapes (or crops) made the server hold GBs; without them each run allocates and frees its own.
+    options.enable_cpu_mem_arena = False
+    options.enable_mem_pattern = False
+    # Idle intra-op threads sleep instead of spinning: with several worker threads (and other processes) on
+    # the cores, spinning threads burned CPU that the other calls needed.
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    if o.threads:
+        options.intra_op_num_threads = int(o.threads)
+    return ort.InferenceSession(str(path), options, providers=_providers(o.device))
+
+
+def _search_model(model_path: Path, search_model: str, name: str) -> Path:
+    """The whole-frame searches' ONNX file (PvnetOptions.search_model)."""
+    if search_model == "same":
+        return model_path
+    if search_model == "auto":
+        int8 = model_path.with_name(f"{model_path.stem}_int8.onnx")
+        return int8 if int8.is_file() else model_path
+    path = Path(search_model)
+    if not path.is_file():
+        raise FileNotFoundError(f"estimator '{name}': search_model {path} not found (\"auto\", \"same\" or an ONNX file)")
+    return path
 
 
 def _factor(h: int, w: int, least: int, max_px: int) -> int:
@@ -147,8 +187,6 @@ class PvnetEstimator(Estimator):
     def __init__(self, objects: ObjectRegistry, model_path: str | Path, name: str = "pvnet", object_ids=(),
                  options: PvnetOptions | None = None, **params):
         """`options`, with `params` (PvnetOptions' field names, as a config file gives them) over it."""
-        import onnxruntime as ort
-
         unknown = set(params) - {f.name for f in dataclass_fields(PvnetOptions)}
         if unknown:
             raise TypeError(f"estimator '{name}': unknown pvnet option(s) {sorted(unknown)}")
@@ -166,25 +204,24 @@ class PvnetEstimator(Estimator):
             raise ValueError(f"estimator '{name}': search_px and full_search_px must be at least 4096 (64x64)")
         if o.window_px != 0 and o.window_px < 64:
             raise ValueError(f"estimator '{name}': window_px must be 0 (the whole frame) or at least 64, got {o.window_px}")
-        session_options = ort.SessionOptions()
-        # No memory arena and no memory pattern: onnxruntime keeps both per input shape, and frames of several
-        # shapes (or crops) made the server hold GBs; without them each run allocates and frees its own.
-        session_options.enable_cpu_mem_arena = False
-        session_options.enable_mem_pattern = False
-        # Idle intra-op threads sleep instead of spinning: with several worker threads (and other processes) on
-        # the cores, spinning threads burned CPU that the other calls needed.
-        session_options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        if o.threads:
-            session_options.intra_op_num_threads = int(o.threads)
-        self.session = ort.InferenceSession(str(model_path), session_options, providers=_providers(o.device))
+        self.session = _session(model_path, o)
+        self.search_model_path = _search_model(model_path, o.search_model, name)
+        self.search_session = self.session if self.search_model_path == model_path else \
+            _session(self.search_model_path, o)
         meta = self.session.get_modelmeta().custom_metadata_map
         self.input_scale = _model_scale(meta, "input_scale", name, model_path)  # frame -> network input (area)
         self.output_stride = _model_scale(meta, "output_stride", name, model_path)  # network input -> output grid
-        model_kp = np.asarray(json.loads(meta.get("keypoints_O", "[]")), dtype=float)
         object_kp = objects.get(ids[0]).keypoints
-        if model_kp.shape != object_kp.shape or not np.allclose(model_kp, object_kp, atol=1e-4):
-            raise ValueError(f"estimator '{name}': {model_path.name} was trained for other keypoints than object "
-                             f"'{ids[0]}' has ({model_kp.shape[0]} vs {object_kp.shape[0]}, or different positions)")
+        for path, session in ((model_path, self.session), (self.search_model_path, self.search_session)):
+            meta = session.get_modelmeta().custom_metadata_map
+            model_kp = np.asarray(json.loads(meta.get("keypoints_O", "[]")), dtype=float)
+            if model_kp.shape != object_kp.shape or not np.allclose(model_kp, object_kp, atol=1e-4):
+                raise ValueError(f"estimator '{name}': {path.name} was trained for other keypoints than object "
+                                 f"'{ids[0]}' has ({model_kp.shape[0]} vs {object_kp.shape[0]}, or different positions)")
+            if (_model_scale(meta, "input_scale", name, path), _model_scale(meta, "output_stride", name, path)) != \
+                    (self.input_scale, self.output_stride):
+                raise ValueError(f"estimator '{name}': {path.name} has another input scale or output stride than "
+                                 f"{model_path.name}")
         self.model_path = model_path
         self.num_keypoints = len(object_kp)
         self.min_mask_px = int(o.min_mask_px)
@@ -226,9 +263,11 @@ class PvnetEstimator(Estimator):
 
     # ---- network passes ------------------------------------------------------------------------
 
-    def _run(self, images: list[np.ndarray]) -> np.ndarray:
+    def _run(self, images: list[np.ndarray], search: bool = False) -> np.ndarray:
+        """The network's output for images of one size; `search`: on the whole-frame searches' network."""
         x = np.stack(images).astype(np.float32).transpose(0, 3, 1, 2) / np.float32(255.0)
-        return self.session.run(None, {"image": np.ascontiguousarray(x)})[0]
+        session = self.search_session if search else self.session
+        return session.run(None, {"image": np.ascontiguousarray(x)})[0]
 
     def _zoom_crop(self, image: np.ndarray, reduced: np.ndarray, factor: int, box: tuple[float, float, float, float]):
         """A square crop around the box, scaled so the object is about zoom_object_px wide: from the frame, or
@@ -320,7 +359,7 @@ class PvnetEstimator(Estimator):
         # larger than 640x480 is reduced further for both (search_px, full_search_px).
         factor = _factor(h, w, self.input_scale, self.search_px)
         halves = self._reduce(images, factor)
-        found = self._locate(self._run(halves), factor)
+        found = self._locate(self._run(halves, search=True), factor)
         side = lambda box: max(box[2] - box[0], box[3] - box[1])
         small = [i for i, f in enumerate(found) if not f or side(f[0][2]) < self.near_box_px * self.input_scale]
         if self.full_resolution_search and small:
@@ -329,11 +368,12 @@ class PvnetEstimator(Estimator):
             near = [k for k, i in enumerate(small) if found[i] and self.window_px]
             whole = [k for k in range(len(small)) if k not in near]
             if whole:  # nothing found (or window_px 0): the whole frame
-                for k, f in zip(whole, self._locate(self._run([reduced[k] for k in whole]), full)):
+                for k, f in zip(whole, self._locate(self._run([reduced[k] for k in whole], search=True), full)):
                     found[small[k]] = f or found[small[k]]
             if near:  # a small candidate: a window around it is enough, at a fifth of the cost
                 windows = [_window(reduced[k].shape[:2], found[small[k]][0][2], full, self.window_px) for k in near]
-                outs = self._run([reduced[k][y:y + wh, x:x + ww] for k, (x, y, ww, wh) in zip(near, windows)])
+                outs = self._run([reduced[k][y:y + wh, x:x + ww] for k, (x, y, ww, wh) in zip(near, windows)],
+                                 search=True)
                 for k, (x, y, _, _), f in zip(near, windows, self._locate(outs, full)):
                     shift = np.array([x, y], dtype=float) * full
                     f = [(px + shift, vec, (b[0] + shift[0], b[1] + shift[1], b[2] + shift[0], b[3] + shift[1]))

@@ -280,10 +280,36 @@ def test_any_frame_shape_runs_the_network_on_inputs_no_larger_than_a_640x480_fra
     est = PvnetEstimator(registry, SHIPPED)
     shapes = []
     run = est._run
-    est._run = lambda images: shapes.append(images[0].shape[:2]) or run(images)
+    est._run = lambda images, search=False: shapes.append(images[0].shape[:2]) or run(images, search)
     est.estimate(_input(rgb))
     upright = len(shapes)
     big = cv2.copyMakeBorder(rgb, 0, 2048 - 480, 0, 2048 - 640, cv2.BORDER_REFLECT)
     est.estimate(_input(big, camera=PinholeCamera(CAMERA.fx, CAMERA.fy, CAMERA.cx, CAMERA.cy, 2048, 2048)))
     assert shapes[0] == (240, 320) and upright <= 3  # whole-frame search, perhaps the far search, one crop pass
     assert all(h * w <= 640 * 480 for h, w in shapes) and (256, 256) in shapes
+
+
+def test_the_searches_run_the_int8_copy_beside_the_model_and_the_crop_pass_the_model(registry, rendered, tmp_path):
+    """search_model "auto": MODEL_int8.onnx beside the model where there is one (the shipped one is), else the
+    model; "same": the model; a path that is not a file: a clear error. The crop pass is the float model's."""
+    est = PvnetEstimator(registry, SHIPPED)
+    assert est.search_model_path == assets.pvnet_int8_model_path() and est.search_session is not est.session
+    passes = []
+    run = est._run
+    est._run = lambda images, search=False: passes.append((images[0].shape[:2], search)) or run(images, search)
+    est.estimate(_input(rendered[0][0]))
+    assert passes[0] == ((240, 320), True) and passes[-1] == ((128, 128), False)
+    assert PvnetEstimator(registry, SHIPPED, search_model="same").search_session.get_modelmeta() is not None
+    assert PvnetEstimator(registry, SHIPPED, search_model="same").search_model_path == SHIPPED
+    lone = tmp_path / "lone.onnx"
+    lone.write_bytes(SHIPPED.read_bytes())
+    assert PvnetEstimator(registry, lone).search_model_path == lone  # no int8 copy beside it
+    with pytest.raises(FileNotFoundError, match="search_model"):
+        PvnetEstimator(registry, SHIPPED, search_model=str(tmp_path / "missing.onnx"))
+
+
+def test_a_search_model_for_other_keypoints_is_refused(registry, blind_model, tmp_path):
+    torch.manual_seed(0)
+    other = export(PvnetNet(4, width=8), tmp_path / "other.onnx", np.zeros((4, 3)))
+    with pytest.raises(ValueError, match="other keypoints"):
+        PvnetEstimator(registry, blind_model, search_model=str(other))

@@ -85,6 +85,11 @@ def pvnet_model_path() -> Path:
     return pvnet_model_dir() / "pvnet.onnx"
 
 
+def pvnet_int8_model_path() -> Path:
+    """The shipped model quantised to int8 for the CPU (`flextrack train pvnet-quantize`), which the service serves."""
+    return pvnet_model_dir() / "pvnet_int8.onnx"
+
+
 def default_config_path() -> Path:
     """The backend's default config, `flextrack serve` without --config."""
     return _path("service", "default_config.toml")

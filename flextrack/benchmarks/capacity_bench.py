@@ -9,6 +9,15 @@ up, refuse the excess devices at once with RESOURCE_EXHAUSTED (they wait as its 
 asks, as the SDK does) and keep the accepted frames' p99 bounded. `--max-queue` bounds each
 estimator's frame queue besides.
 
+`--cpu-cost DEVICES` measures instead of searching, for a machine shared with other work, where a
+ramp's p99 says more about the neighbours than about the server: each backend's server gets a fixed
+offered load (DEVICES devices at --fps, well under what it holds), and its process's CPU seconds
+(user + system, /proc) over the answers, less what it burns idle (measured just before, without
+load: gRPC's pollers, health), give its CPU a frame, gRPC and the event loop included. Devices per
+core at --fps = (1 - idle share) / (fps x CPU a frame), the bound a core gives before any
+queueing; the p50/p99 at that offered load are measured beside it. The backends take turns in rounds, like
+the ramps, and each figure is the median over the rounds.
+
 `--tracking` sends the estimators' frames as a tracking device does: each with its prior (the
 sequence's true pose perturbed by a seeded draw of a 1 deg / 5 mm covariance, which it carries) and
 cut to the SDK's crop around it (client_sdk.crop), with 10 kB of tracker state: what `pvnet_region`
@@ -71,6 +80,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tracking", action="store_true",
                         help="the estimators' frames as a tracking device sends them: with a prior and cut to the "
                              "SDK's crop around it (needs --sequence with rendered frames and ground truth)")
+    parser.add_argument("--cpu-cost", type=int, metavar="DEVICES",
+                        help="instead of the ramps and the overload run: offer DEVICES devices at --fps to each "
+                             "backend for --step-s seconds per round and derive devices per core from the server's "
+                             "CPU a frame (for a shared machine)")
     parser.add_argument("--out", type=Path, default=Path("out/bench_capacity"),
                         help="folder for capacity.json and the servers' logs (default: %(default)s)")
 
@@ -174,6 +187,66 @@ def _overload(name: str, spec: runner.LoadSpec, work: workload.Workload, clients
             "outcomes": summary["outcomes"]}
 
 
+def _cpu_cost(names: list[str], works: dict, serve_args: list[str], base: runner.LoadSpec, server_cpus,
+              args, out: Path) -> dict:
+    """Per backend, its server's CPU a frame at a fixed offered load, devices per core from it, and the latency
+    there; the median over `args.repeats` rounds, the backends in alternating order."""
+    from flextrack.benchmarks.service_bench import _cpu_s
+
+    running = {"echo": servers.start_echo(cpus=server_cpus)}
+    rounds: dict[str, list[dict]] = {}
+    try:
+        for n in names:
+            running[n] = servers.start_serve(serve_args, n, log_path=out / f"{n}_server.log", cpus=server_cpus)
+        rounds = {n: [] for n in running}
+        spec = replace(base, clients=args.cpu_cost, warmup_s=0.0)
+        for n, server in running.items():  # warm-up: connections, the estimators' first frames
+            runner.run(replace(spec, targets=(server.address,), duration_s=1.0), works[n])
+        for r in range(args.repeats):
+            for n in (list(running) if r % 2 == 0 else list(running)[::-1]):
+                server = running[n]
+                idle_s = min(2.0, args.step_s)
+                cpu0, t0 = _cpu_s(server.process.pid), time.perf_counter()
+                time.sleep(idle_s)
+                idle = (_cpu_s(server.process.pid) - cpu0) / (time.perf_counter() - t0)  # CPU s a second, no load
+                cpu0, t0 = _cpu_s(server.process.pid), time.perf_counter()
+                result = runner.run(replace(spec, targets=(server.address,)), works[n])
+                cpu, wall = _cpu_s(server.process.pid) - cpu0, time.perf_counter() - t0
+                summary = report.summarize(result)
+                answered = max(1, summary["answered"])
+                entry = {"cpu_ms_per_frame": 1e3 * max(cpu - idle * wall, 0.0) / answered,
+                         "gross_cpu_ms_per_frame": 1e3 * cpu / answered, "idle_cpu_share": idle,
+                         "answered": summary["answered"],
+                         "ok_fps": summary["ok_fps"], "offered_fps": summary["offered_fps"],
+                         "error_rate": summary["error_rate"], "skipped_frames": summary["skipped_frames"],
+                         "latency_ms": summary["latency_all"], "load_average": os.getloadavg()[0]}
+                entry["devices_per_core"] = (1.0 - idle) * 1e3 / (args.fps * max(entry["cpu_ms_per_frame"], 1e-6))
+                rounds[n].append(entry)
+                lat = entry["latency_ms"]
+                print(f"  {n}: {entry['cpu_ms_per_frame']:.2f} ms CPU a frame (idle {100 * idle:.1f} % of a core; "
+                      f"{entry['devices_per_core']:.1f} devices "
+                      f"per core at {args.fps:g} FPS), p50 {lat['p50_ms'] or 0:.1f} p99 {lat['p99_ms'] or 0:.1f} ms, "
+                      f"errors {entry['error_rate']:.1%}, load {entry['load_average']:.1f}", flush=True)
+    finally:
+        exit_codes = {n: server.stop() for n, server in running.items()}
+    backends = {}
+    for n, entries in rounds.items():
+        entries = sorted(entries, key=lambda e: e["cpu_ms_per_frame"])
+        backends[n] = dict(entries[len(entries) // 2], rounds_cpu_ms=[e["cpu_ms_per_frame"] for e in entries],
+                           exit_code=exit_codes[n])
+    return backends
+
+
+def _print_cpu_cost(backends: dict, devices: int, fps: float, p99_bound_ms: float) -> None:
+    print(f"\n{'backend':<14}{'CPU ms/frame':>13}{'devices/core':>14}{'p50 ms':>8}{'p99 ms':>8}{'errors':>8}"
+          f"   at {devices} devices x {fps:g} FPS (median of the rounds)")
+    for name, e in backends.items():
+        p99 = e["latency_ms"]["p99_ms"]
+        flag = "" if p99 is not None and p99 < p99_bound_ms else f"  (p99 not under {p99_bound_ms:g} ms)"
+        print(f"{name:<14}{e['cpu_ms_per_frame']:>13.2f}{e['devices_per_core']:>14.1f}"
+              f"{e['latency_ms']['p50_ms'] or 0:>8.1f}{p99 or 0:>8.1f}{e['error_rate']:>8.1%}{flag}")
+
+
 def _ramps(names: list[str], works: dict, serve_args: list[str], base: runner.LoadSpec, server_cpus, front_cpus,
            args, out: Path) -> dict:
     """Each backend's capacity: the echo servicer's and each estimator's, the median over `args.repeats` rounds."""
@@ -207,6 +280,9 @@ def _ramps(names: list[str], works: dict, serve_args: list[str], base: runner.Lo
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.cpu_cost is not None and args.cpu_cost < 1:
+        print(f"flextrack bench capacity: --cpu-cost must be at least 1 device, got {args.cpu_cost}", file=sys.stderr)
+        return 2
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     results: dict = {"date_utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "fps": args.fps,
@@ -238,6 +314,14 @@ def run(args: argparse.Namespace) -> int:
             print(f"flextrack bench capacity: {exc}")
             return 2
         results["request_kb"] = {n: w.request_bytes / 1024 for n, w in works.items()}
+        if args.cpu_cost:
+            results["cpu_cost"] = {"devices": args.cpu_cost, "seconds": args.step_s, "tracking": args.tracking,
+                                   "backends": _cpu_cost(names, works, serve_args, base, server_cpus, args, out)}
+            _print_cpu_cost(results["cpu_cost"]["backends"], args.cpu_cost, args.fps, args.p99_bound_ms)
+            results["provenance"] = of_args(args, command="flextrack bench capacity")
+            (out / "capacity.json").write_text(json.dumps(results, indent=2))
+            print(f"wrote {out}/capacity.json")
+            return 0
         if args.capacity:
             results["backends"] = {n: {"capacity_clients": args.capacity, "given": True} for n in names}
         else:

@@ -7,13 +7,20 @@ inference, voting, PnP and refinement time per frame (wall), the process's CPU t
 the accuracy (found, 2D error under 5 px, ADD under 10 % of the diameter): for whole frames (a
 first pose, or after a loss) and for the crops the SDK sends once it tracks (client_sdk.crop, around
 the true pose with a 1 deg / 5 mm prior covariance); then frames/s (decode included) per batch size.
+The estimator as served (its whole-frame searches on the model's int8 copy, `search_model`
+"auto") and a baseline (the float model throughout) take turns frame by frame, so that load from
+elsewhere on the machine falls on both alike, and the bench prints the ratio of their CPU a frame
+beside their accuracy. `--out` writes the figures with their provenance.
 `--memory` prints the resident memory after frames of 640x480, 1280x960 and 2048x2048 instead.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import resource
+import sys
 import time
 from pathlib import Path
 
@@ -22,17 +29,26 @@ import numpy as np
 from flextrack import assets
 
 DEFAULT_MODEL = assets.pvnet_model_path()
+STAGES = ("decode", "inference", "voting", "pnp", "refine")
 PRIOR_STD_DEG, PRIOR_STD_M = 1.0, 0.005  # the prior the crops are cut for: about a tracking filter's
 SHAPES = ((640, 480), (1280, 960), (2048, 2048), (1280, 960), (2048, 2048))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", type=Path, default=DEFAULT_MODEL, help="PVNet ONNX file for the default object")
+    parser.add_argument("--search-model", default="auto",
+                        help="the estimator's search_model: 'auto' (MODEL_int8.onnx beside the model where there "
+                             "is one), 'same', or an ONNX file")
+    parser.add_argument("--no-baseline", action="store_true",
+                        help="skip the baseline (search_model 'same': the float model throughout) that otherwise "
+                             "runs turn about on the same frames")
     parser.add_argument("--frames", type=int, default=32, help="rendered frames (cycled through)")
     parser.add_argument("--batches", default="1,2,4,8,16", help="batch sizes to time")
     parser.add_argument("--repeats", type=int, default=2, help="passes over the frames per batch size")
-    parser.add_argument("--threads", type=int, default=0, help="onnxruntime intra-op threads (0: its default)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="onnxruntime intra-op threads (0: its default, every core; 1: a service worker's)")
     parser.add_argument("--device", default="auto", choices=["auto", "cpu"], help="auto: CUDA when present")
+    parser.add_argument("--out", type=Path, help="write the batch-1 figures and their provenance here (JSON)")
     parser.add_argument("--memory", action="store_true",
                         help="print the resident memory after frames of 640x480, 1280x960 and 2048x2048 instead")
 
@@ -94,65 +110,95 @@ def _memory(estimator, frames, camera) -> int:
     return 0
 
 
-def _batch1(estimator, obj, frames, camera, cropped: bool) -> None:
-    """The batch-1 stage times, CPU a frame and accuracy over the frames, whole or as the SDK's crops."""
+def _batch1(estimators: dict, obj, frames, camera, cropped: bool) -> dict:
+    """Per estimator, the batch-1 stage times, CPU a frame and accuracy over the frames, whole or as the SDK's
+    crops; the estimators take turns frame by frame (the first goes first on even frames)."""
     from estimators.base import EstimateInput, Status
     from flextrack.geometry import metrics
     from flextrack.v1 import pose_estimation_pb2 as pb
     from service.request_decoding import decode_crop, decode_image
 
-    stages = {"decode": [], "inference": [], "voting": [], "pnp": [], "refine": []}
-    proj, add, sizes, cpu = [], [], [], 0.0
+    runs = {name: {"stages": {k: [] for k in STAGES}, "proj": [], "add": [], "cpu": 0.0} for name in estimators}
+    sizes = []
     for i, (whole, cut, crop, T_gt) in enumerate(frames):
-        c0, t = time.process_time(), time.perf_counter()
         image = cut if cropped else whole
-        cam = decode_crop(pb.EstimateRequest(image=cut, crop=crop), camera, np.zeros((0, 3)))[0] if cropped else camera
-        rgb = decode_image(image, cam)
-        stages["decode"].append((time.perf_counter() - t) * 1e3)
-        out = estimator.estimate(EstimateInput(frame_id=i, capture_time_ns=0, camera=cam, image=rgb))
-        cpu += time.process_time() - c0
         sizes.append(len(image.data))
-        for key in ("inference", "voting", "pnp", "refine"):
-            stages[key].append(out.stage_ms.get(key, 0.0))
-        ok = out.status == Status.OK
-        proj.append(metrics.proj_px(out.T_CO, T_gt, camera, obj.vertices) if ok else np.inf)
-        add.append(metrics.add_m(out.T_CO, T_gt, obj.vertices) if ok else np.inf)
-    total = sum(np.mean(v) for v in stages.values())
+        for name in (list(estimators) if i % 2 == 0 else list(estimators)[::-1]):
+            run = runs[name]
+            c0, t = time.process_time(), time.perf_counter()
+            cam = decode_crop(pb.EstimateRequest(image=cut, crop=crop), camera, np.zeros((0, 3)))[0] if cropped \
+                else camera
+            rgb = decode_image(image, cam)
+            run["stages"]["decode"].append((time.perf_counter() - t) * 1e3)
+            out = estimators[name].estimate(EstimateInput(frame_id=i, capture_time_ns=0, camera=cam, image=rgb))
+            run["cpu"] += time.process_time() - c0
+            for key in STAGES[1:]:
+                run["stages"][key].append(out.stage_ms.get(key, 0.0))
+            ok = out.status == Status.OK
+            run["proj"].append(metrics.proj_px(out.T_CO, T_gt, camera, obj.vertices) if ok else np.inf)
+            run["add"].append(metrics.add_m(out.T_CO, T_gt, obj.vertices) if ok else np.inf)
     n = len(frames)
     what = "crops as the SDK sends them" if cropped else "whole 640x480 frames"
-    print(f"batch 1, {what} (median {np.median(sizes) / 1024:.1f} kB), mean ms per frame: "
-          + ", ".join(f"{k} {np.mean(v):.2f}" for k, v in stages.items()) + f", sum {total:.2f}; "
-          f"CPU {cpu / n * 1e3:.1f} ms a frame; accuracy: found {np.isfinite(proj).sum()}/{n}, "
-          f"2D < 5 px {100 * np.mean(np.array(proj) < 5):.0f} %, "
-          f"ADD < 10 % of the diameter {100 * np.mean(np.array(add) < 0.1 * obj.diameter_m):.0f} %")
+    figures = {"frames": n, "median_request_kb": float(np.median(sizes)) / 1024, "models": {}}
+    for name, run in runs.items():
+        stages = {k: float(np.mean(v)) for k, v in run["stages"].items()}
+        proj, add = np.array(run["proj"]), np.array(run["add"])
+        f = {"stage_ms": stages, "sum_ms": sum(stages.values()), "cpu_ms": run["cpu"] / n * 1e3,
+             "found": int(np.isfinite(proj).sum()), "proj_below_5px": float(np.mean(proj < 5)),
+             "add_below_10pct": float(np.mean(add < 0.1 * obj.diameter_m))}
+        figures["models"][name] = f
+        print(f"batch 1, {what} (median {figures['median_request_kb']:.1f} kB), {name}, mean ms per frame: "
+              + ", ".join(f"{k} {v:.2f}" for k, v in stages.items()) + f", sum {f['sum_ms']:.2f}; "
+              f"CPU {f['cpu_ms']:.1f} ms a frame; accuracy: found {f['found']}/{n}, "
+              f"2D < 5 px {100 * f['proj_below_5px']:.0f} %, ADD < 10 % of the diameter {100 * f['add_below_10pct']:.0f} %")
+    if len(runs) == 2:
+        served, base = figures["models"].values()
+        figures["cpu_ratio"] = served["cpu_ms"] / base["cpu_ms"]
+        first, second = runs
+        print(f"  {first} / {second}: CPU a frame x{figures['cpu_ratio']:.2f}, "
+              f"sum x{served['sum_ms'] / base['sum_ms']:.2f} (the same frames, turn about)")
+    return figures
 
 
 def run(args) -> int:
     from estimators.base import EstimateInput
     from estimators.objects import ObjectRegistry
     from estimators.pvnet import PvnetEstimator
+    from flextrack.provenance import of_args
     from service.request_decoding import decode_image
 
     if not args.model.is_file():
-        print(f"bench pvnet: model {args.model} not found (train one with `flextrack train pvnet`)")
+        print(f"bench pvnet: model {args.model} not found (train one with `flextrack train pvnet`)", file=sys.stderr)
         return 2
     obj = _object()
-    estimator = PvnetEstimator(ObjectRegistry([obj]), args.model, device=args.device, threads=args.threads)
+    registry = ObjectRegistry([obj])
+    try:
+        estimator = PvnetEstimator(registry, args.model, device=args.device, threads=args.threads,
+                                   search_model=args.search_model)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"bench pvnet: {exc}", file=sys.stderr)
+        return 2
     frames, camera = _frames(args.frames)
     if args.memory:
         return _memory(estimator, frames, camera)
-    print(f"pvnet bench: {args.model} on {estimator.providers[0]}, {len(frames)} rendered 640x480 frames "
-          f"(JPEG 90, 4:4:4)")
+    served = f"searches on {estimator.search_model_path.name}"
+    estimators = {served: estimator}
+    if not args.no_baseline and estimator.search_model_path != args.model:
+        estimators["float throughout (baseline)"] = PvnetEstimator(
+            registry, args.model, device=args.device, threads=args.threads, search_model="same")
+    print(f"pvnet bench: {args.model} ({served}) on {estimator.providers[0]}, {args.threads or 'default'} "
+          f"intra-op thread(s), {len(frames)} rendered 640x480 frames (JPEG 90, 4:4:4)")
 
     def decode(i):
         return EstimateInput(frame_id=i, capture_time_ns=0, camera=camera,
                              image=decode_image(frames[i % len(frames)][0], camera))
 
-    estimator.estimate(decode(0))  # warm-up
-    for cropped in (False, True):
-        _batch1(estimator, obj, frames, camera, cropped)
+    for e in estimators.values():
+        e.estimate(decode(0))  # warm-up
+    results = {"whole": _batch1(estimators, obj, frames, camera, cropped=False),
+               "crops": _batch1(estimators, obj, frames, camera, cropped=True)}
     best = (0, 0.0)
-    for b in [int(x) for x in args.batches.split(",")]:
+    for b in [int(x) for x in args.batches.split(",") if x]:
         n = max(b, args.repeats * len(frames) // b * b)
         t = time.perf_counter()
         for start in range(0, n, b):
@@ -160,5 +206,12 @@ def run(args) -> int:
         fps = n / (time.perf_counter() - t)
         best = max(best, (fps, b))
         print(f"batch {b:>2}: {fps:6.1f} frames/s ({1e3 / fps:.1f} ms per frame, decode included)")
-    print(f"best: batch {best[1]} at {best[0]:.1f} frames/s")
+    if best[1]:
+        print(f"best: batch {best[1]} at {best[0]:.1f} frames/s")
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        results["load_average"] = list(os.getloadavg())
+        results["provenance"] = of_args(args, command="flextrack bench pvnet")
+        args.out.write_text(json.dumps(results, indent=1))
+        print(f"wrote {args.out}")
     return 0

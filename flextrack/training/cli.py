@@ -2,6 +2,7 @@
 
     flextrack train pvnet --object default --out runs/pvnet_default [--steps --batch --size --seed --resume]
     flextrack train pvnet-eval --model runs/pvnet_default/pvnet.onnx --object default --out runs/eval
+    flextrack train pvnet-quantize --model runs/pvnet_default/pvnet.onnx     # writes pvnet_int8.onnx beside it
 """
 
 from __future__ import annotations
@@ -49,6 +50,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     evaluate.add_arguments(e)
 
+    q = sub.add_parser("pvnet-quantize", help="write an int8 copy of an ONNX model for the searches on a CPU (3x faster)",
+                       description="Quantise a PVNet ONNX model to int8 (static, QDQ), calibrated on the inputs the "
+                       "pvnet estimator feeds the network on rendered frames of unseen rooms; check the result "
+                       "with pvnet-eval before serving it (docs/pvnet.md, Speed).",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    from flextrack.training import quantize
+
+    quantize.add_arguments(q)
+
 
 def _train(args) -> int:
     from tqdm import tqdm
@@ -81,6 +91,10 @@ def run(args) -> int:
     try:
         if args.task == "pvnet":
             return _train(args)
+        if args.task == "pvnet-quantize":
+            from flextrack.training import quantize
+
+            return quantize.run(args)
         from flextrack.training import evaluate
 
         return evaluate.run(args)
