@@ -2,8 +2,9 @@
 frame's request, and hand the backend's answer to the tracker.
 
 One home, so that the two shells cannot drift apart: the prior on every request after
-initialisation, the IMU noise from the sequence's Kalibr yaml, the answer's covariance decoded once
-(a bad one is counted and replaced by the tracker's documented default).
+initialisation, the IMU noise from the sequence's Kalibr yaml, the answer floor from what the sequence
+declares it cannot know, the answer's covariance decoded once (a bad one is counted and replaced by the
+tracker's documented default).
 """
 
 from __future__ import annotations
@@ -21,18 +22,46 @@ from flextrack.geometry.camera import bbox_corners
 from flextrack.runners.results import TrackRecord
 from flextrack.v1 import pose_estimation_pb2 as pb
 
+# sequence.yaml's key for what a recording cannot know exactly: its camera-IMU extrinsic and its frame times,
+# as one per-axis rotation (deg) and translation (m) on every answer (FilterOptions.answer_floor_*).
+TIMING_EXTRINSIC_KEY = "timing_extrinsic_std"
+
+
+def declared_floor(seq: Sequence) -> tuple[float, float] | None:
+    """(rotation deg, translation m) the sequence declares under TIMING_EXTRINSIC_KEY (the simulator: 0, its
+    extrinsic and frame times are exact), or None when it declares nothing (a real recording: the tracker's
+    default floor). ValueError for a declaration that is not two finite numbers >= 0."""
+    declared = seq.meta.get(TIMING_EXTRINSIC_KEY)
+    if declared is None:
+        return None
+    where = f"{seq.root / 'sequence.yaml'}: {TIMING_EXTRINSIC_KEY}"
+    if not isinstance(declared, dict):
+        raise ValueError(f"{where} must map rotation_deg and translation_m to numbers, got {declared!r}")  # noqa: TRY004 (a file, not an argument)
+    try:
+        values = (float(declared["rotation_deg"]), float(declared["translation_m"]))
+    except (KeyError, TypeError, ValueError):
+        raise ValueError(f"{where} must map rotation_deg and translation_m to numbers, got {declared!r}") from None
+    if not all(math.isfinite(v) and v >= 0 for v in values):
+        raise ValueError(f"{where}: rotation_deg and translation_m must be finite and >= 0, got {declared!r}")
+    return values
+
 
 def tracker_for(seq: Sequence, vertices_O: np.ndarray, options: TrackerOptions | None,
                 record_error_dynamics: bool = True):
-    """The tracker core the options name; the filter's IMU densities are the sequence's (imu0/sensor.yaml), and it
-    keeps its error dynamics for the NEES interval unless told not to (the timing experiment)."""
+    """The tracker core the options name; the filter's IMU densities are the sequence's (imu0/sensor.yaml), so is
+    its answer floor where the sequence declares one (`declared_floor`), and it keeps its error dynamics for the
+    NEES interval unless told not to (the timing experiment)."""
     options = options or TrackerOptions()
     if options.fusion == "filter":
         n = seq.imu_noise
-        options = replace(options, filter=replace(
+        fo = replace(
             options.filter, gyroscope_noise_density=n.gyroscope_noise_density,
             gyroscope_random_walk=n.gyroscope_random_walk, accelerometer_noise_density=n.accelerometer_noise_density,
-            accelerometer_random_walk=n.accelerometer_random_walk, record_error_dynamics=record_error_dynamics))
+            accelerometer_random_walk=n.accelerometer_random_walk, record_error_dynamics=record_error_dynamics)
+        floor = declared_floor(seq)
+        if floor is not None:
+            fo = replace(fo, answer_floor_rotation_deg=floor[0], answer_floor_translation_m=floor[1])
+        options = replace(options, filter=fo)
     return create_tracker(options, seq.camera, seq.T_BC, bbox_corners(vertices_O))
 
 

@@ -24,7 +24,7 @@ from client_sdk.slowdown import PIXEL2_FACTOR
 from flextrack.assets import default_config_path
 from flextrack.formats import sequence as sequence_io
 from flextrack.provenance import of_args
-from flextrack.runners import cli_checks, scoring, session
+from flextrack.runners import cli_checks, exchange, scoring, session
 from flextrack.runners.backends import ORACLE_BACKENDS as ORACLES
 from flextrack.runners.progress import ProgressPrinter
 from flextrack.runners.results import format_table
@@ -228,6 +228,11 @@ def run(args) -> int:
             in_process=args.in_process, config=args.config, server=args.server, objects=tuple(args.objects),
             frames=args.frames or args.backend not in ORACLES)
         options = tracker_options(args)
+        floor_set = sorted(name for name in overrides(args.set)[1] if name.startswith("answer_floor_"))
+        if floor_set and exchange.declared_floor(loaded) is not None:  # it would be replaced by the declaration
+            raise ValueError(f"--set filter.{floor_set[0]}: {args.sequence} declares what it cannot know exactly "
+                             f"(sequence.yaml {exchange.TIMING_EXTRINSIC_KEY}), which the tracker's answer floor "
+                             "is set from; edit it there")
         registry = None if args.server else session.registry_for(loaded, spec)
         kind = estimator_kind(args.backend, registry, args.server)
         if kind is None and registry is not None:
