@@ -576,6 +576,46 @@ def render_bench_region(folder: Path) -> str:
         provenance_line(data["provenance"]) + f" Files: `{RESULTS_DIR.as_posix()}/{folder.name}/`."])
 
 
+@section("bench_pvnet")
+def render_bench_pvnet(folder: Path) -> str:
+    """`flextrack bench pvnet --out`: the pvnet estimator's batch-1 stages, CPU a frame and accuracy, as served
+    (searches on the int8 copy) and the float baseline turn about on the same frames."""
+    data = json.loads((folder / "bench_pvnet.json").read_text())
+    lines = [("| frames | estimator | CPU ms a frame | wall ms: decode / inference / voting / PnP / refinement = **sum** "
+             "| found, 2D < 5 px, ADD < 10 % |"), "|---|---|---:|---|---|"]
+    for key, label in (("whole", "whole 640x480"), ("crops", "the SDK's crops")):
+        part = data[key]
+        for name, m in part["models"].items():
+            st = m["stage_ms"]
+            lines.append(f"| {label} ({part['median_request_kb']:.1f} kB) | {name} | {m['cpu_ms']:.1f} | "
+                         + " / ".join(f"{st[k]:.1f}" for k in ("decode", "inference", "voting", "pnp", "refine"))
+                         + f" = **{m['sum_ms']:.1f}** | {m['found']}/{part['frames']}, {100 * m['proj_below_5px']:.0f} %, "
+                         f"{100 * m['add_below_10pct']:.0f} % |")
+        if "cpu_ratio" in part:
+            lines.append(f"| | as served / baseline | x{part['cpu_ratio']:.2f} | | |")
+    load = ", ".join(f"{x:.1f}" for x in data.get("load_average", []))
+    return "\n".join([*lines, "", f"Load average at the end (1, 5, 15 min): {load}.",
+                      provenance_line(data["provenance"]) + f" Files: `{RESULTS_DIR.as_posix()}/{folder.name}/`."])
+
+
+@section("bench_capacity")
+def render_bench_capacity(folder: Path) -> str:
+    """`flextrack bench capacity --cpu-cost`: each backend's server CPU a frame at a fixed offered load, the
+    30 FPS devices per core it gives, and the latency measured at that load."""
+    data = json.loads((folder / "bench_capacity.json").read_text())
+    cost = data["cpu_cost"]
+    lines = [(f"| backend | request kB | server CPU ms a frame (rounds) | devices per core at {data['fps']:g} FPS | "
+             f"p50 / p99 ms at {cost['devices']} devices | errors |"), "|---|---:|---|---:|---|---:|"]
+    for name, e in cost["backends"].items():
+        rounds = ", ".join(f"{x:.2f}" for x in e["rounds_cpu_ms"])
+        lat = e["latency_ms"]
+        lines.append(f"| {name} | {data['request_kb'][name]:.1f} | **{e['cpu_ms_per_frame']:.2f}** ({rounds}) | "
+                     f"**{e['devices_per_core']:.1f}** | {lat['p50_ms']:.1f} / {lat['p99_ms']:.1f} | "
+                     f"{100 * e['error_rate']:.1f} % |")
+    return "\n".join([*lines, "", provenance_line(data["provenance"])
+                      + f" Files: `{RESULTS_DIR.as_posix()}/{folder.name}/`."])
+
+
 @section("nees")
 def render_nees(folder: Path) -> str:
     """`flextrack evaluate nees`: each estimator's held-out mean NEES against chi2(6)'s interval."""

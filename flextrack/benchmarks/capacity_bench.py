@@ -12,7 +12,7 @@ estimator's frame queue besides.
 `--cpu-cost DEVICES` measures instead of searching, for a machine shared with other work, where a
 ramp's p99 says more about the neighbours than about the server: each backend's server gets a fixed
 offered load (DEVICES devices at --fps, well under what it holds), and its process's CPU seconds
-(user + system, /proc) over the answers, less what it burns idle (measured just before, without
+(user + system, /proc) over its OK answers, less what it burns idle (measured just before, without
 load: gRPC's pollers, health), give its CPU a frame, gRPC and the event loop included. Devices per
 core at --fps = (1 - idle share) / (fps x CPU a frame), the bound a core gives before any
 queueing; the p50/p99 at that offered load are measured beside it. The backends take turns in rounds, like
@@ -213,7 +213,8 @@ def _cpu_cost(names: list[str], works: dict, serve_args: list[str], base: runner
                 result = runner.run(replace(spec, targets=(server.address,)), works[n])
                 cpu, wall = _cpu_s(server.process.pid) - cpu0, time.perf_counter() - t0
                 summary = report.summarize(result)
-                answered = max(1, summary["answered"])
+                # per OK answer: a refusal's little CPU is charged to the frames answered
+                answered = max(1, summary["outcomes"].get("OK", 0))
                 entry = {"cpu_ms_per_frame": 1e3 * max(cpu - idle * wall, 0.0) / answered,
                          "gross_cpu_ms_per_frame": 1e3 * cpu / answered, "idle_cpu_share": idle,
                          "answered": summary["answered"],
