@@ -155,7 +155,10 @@ class ContourRefiner:
         mask = np.zeros((size[1], size[0]), np.uint8)
         facing = self.face_offsets + self.face_normals @ (R.T @ t) < 0  # n . (v0 - c), c = -R^T t
         turn = facing[self.adjacent[:, 0]] != facing[self.adjacent[:, 1]]
-        rim = np.unique(np.concatenate([self.adjacent[turn].ravel(), self.open_faces]))
+        drawn = np.zeros(len(self.faces), bool)  # the faces along turning edges and the open ones, in order
+        drawn[self.adjacent[turn].ravel()] = True
+        drawn[self.open_faces] = True
+        rim = np.flatnonzero(drawn)
         # coordinates in 1/16 raster px (shift=4); raster px centre (i + 0.5) / OVERSAMPLE image px
         tri = np.round(((uv[self.faces[rim]] - lo) * OVERSAMPLE - 0.5) * 16).astype(np.int32)
         for triangle in tri:  # one by one: fillPoly on many polygons fills their overlaps even-odd
