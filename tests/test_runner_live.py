@@ -100,6 +100,11 @@ def test_track_cli_writes_results_and_rejects_bad_input(short_seq, tmp_path, cap
     assert "unknown option 'warp'; one of " in capsys.readouterr().err
     assert main(["track", str(short_seq.root), "--out", str(out), "--set", "pose_gain=2", "--no-plots"]) == 2
     assert "pose_gain" in capsys.readouterr().err
+    # the simulator declares its extrinsic and frame times exact: the floor is set from that, not from --set
+    assert main(["track", str(short_seq.root), "--out", str(out), "--set", "filter.answer_floor_translation_m=0.001",
+                 "--no-plots"]) == 2
+    err = capsys.readouterr().err
+    assert "declares what it cannot know exactly (sequence.yaml timing_extrinsic_std)" in err and err.count("\n") == 1
 
 
 def test_demo_runs_live_end_to_end(tmp_path, capsys):

@@ -110,20 +110,38 @@ def test_a_backend_claiming_micrometres_does_not_break_the_filter_on_fast_motion
     its update allowed for the time offset's products with the rates (and held the offset while the still
     start cannot show it), pulled the offset 20 ms off during the still start, gated the first moving answers
     and re-initialised over and over (6.5 px, mean NEES 7000). Now it tracks to a fraction of a px, never
-    over-confident: the answers are weighed at the floor of what the tracker cannot know exactly
-    (FilterOptions.answer_floor_*: 0.1 deg, 1 mm; ~0.15 px here, 0.02 without it), so its NEES is below 6."""
+    over-confident. The simulator declares its extrinsic and frame times exact (sequence.yaml
+    timing_extrinsic_std: 0), so the answers are taken at their word (0.02 px, NEES 5.9); the same sequence
+    declaring nothing, as a real recording, gets the tracker's floor of what it cannot know exactly
+    (FilterOptions.answer_floor_*: 0.1 deg, 1 mm; 0.15 px, NEES 1.6: cautious, never over-confident)."""
     from estimators.gt_oracle import GtOracleEstimator
     from estimators.registry import EstimatorRegistry
+    from flextrack.runners.exchange import TIMING_EXTRINSIC_KEY
 
     seq = sequence_io.load(generate_sequence("circular", "hard", tmp_path / "circ", duration_s=30.0, fps=120.0,
                                              seed=0))
+    assert seq.meta[TIMING_EXTRINSIC_KEY] == {"rotation_deg": 0.0, "translation_m": 0.0}
+    real = dataclasses.replace(seq, meta={k: v for k, v in seq.meta.items() if k != TIMING_EXTRINSIC_KEY})
     registry = EstimatorRegistry([GtOracleEstimator("gt", [seq.root], floor_r_deg=1e-6, floor_t_m=1e-8)])
     options = ReplayOptions(network=NetworkOptions(seed=0), estimator="gt")
-    s = replay(seq, InProcessBackend(registry, options.network), session.model_vertices(seq), TrackerOptions(),
-               options).summarize()
-    assert s.proj_px < 0.25 and s.worst_fine_px < 1.0, s
-    assert 0.5 < s.nees_mean < 7.0, s
-    assert s.status_counts.get("WRONG_POSE", 0) == 0, s.status_counts
+    exact, floored = (replay(s, InProcessBackend(registry, options.network), session.model_vertices(seq),
+                             TrackerOptions(), options).summarize() for s in (seq, real))
+    for s in (exact, floored):
+        assert s.worst_fine_px < 1.0 and s.status_counts.get("WRONG_POSE", 0) == 0, s
+    assert exact.proj_px < 0.05 and 3.0 < exact.nees_mean < 9.0, exact
+    assert 0.1 < floored.proj_px < 0.25 and 0.5 < floored.nees_mean < 3.0, floored
+
+
+def test_a_sequence_s_declared_floor_is_checked(tmp_path):
+    from flextrack.runners.exchange import TIMING_EXTRINSIC_KEY, declared_floor
+
+    seq = sequence_io.load(generate_sequence("translational", "easy", tmp_path / "t", duration_s=1.0, fps=10.0))
+    assert declared_floor(seq) == (0.0, 0.0)
+    assert declared_floor(dataclasses.replace(seq, meta={})) is None
+    for bad in ({"rotation_deg": -1, "translation_m": 0}, {"rotation_deg": 0.1}, "exact",
+                {"rotation_deg": "x", "translation_m": 0}, {"rotation_deg": float("nan"), "translation_m": 0}):
+        with pytest.raises(ValueError, match=TIMING_EXTRINSIC_KEY):
+            declared_floor(dataclasses.replace(seq, meta={TIMING_EXTRINSIC_KEY: bad}))
 
 
 def test_the_filter_s_error_dynamics_change_nothing_and_give_the_nees_interval(phone_seq):

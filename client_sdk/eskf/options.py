@@ -102,7 +102,9 @@ class FilterOptions:
     a backend's pose of the camera, the tracker turns it into the IMU's with an extrinsic known to ~0.1 deg
     and ~1 mm and a frame time known to ~1 ms (a phone's rolling shutter and stamps); a ground-truth
     backend's micrometres taken at their word had every later answer gated on real IMU (4.85 px against
-    the noisy backend's 3.4). 0 turns the floor off."""
+    the noisy backend's 3.4). 0 turns the floor off. This is a real device's default: flextrack's runners set
+    the floor from what a sequence declares it cannot know (sequence.yaml `timing_extrinsic_std`; the
+    simulator's extrinsic and frame times are exact, 0) and keep this where it declares nothing."""
     answer_floor_translation_m: float = 0.001
     """Per axis, likewise (m)."""
     gate_chi2: float = 22.46
