@@ -9,6 +9,7 @@ from estimators.chained import ChainedEstimator
 from estimators.objects import load_object
 from estimators.region.estimator import RegionEstimator
 from estimators.region.histograms import ColourHistograms
+from estimators.region.optimizer import OptimizationResult, OptimizerConfig, answer_covariance
 from estimators.region.session_store import SessionStore
 from estimators.region.viewpoint_model import cached_viewpoint_model, look_at
 from estimators.registry import EstimatorRegistry
@@ -182,6 +183,22 @@ def test_unmixing_recovers_histograms_from_mislabelled_samples():
     np.testing.assert_allclose(back.fg, true.fg, atol=1e-12)
     np.testing.assert_allclose(back.bg, true.bg, atol=1e-12)
     assert mixed.unmixed(0.0).fg is not mixed.fg and np.array_equal(mixed.unmixed(0.0).fg, mixed.fg)
+
+
+def test_a_poorer_colour_agreement_gets_a_larger_covariance_and_the_cap_holds():
+    """Real frames: the fits whose colours agree less are further off than their lines' spread says (LM-O), so the
+    inflation grows as the confidence falls, flat beyond the knots; an unconstrained direction stays capped."""
+    cfg = OptimizerConfig(covariance_inflation=100.0, inflation_by_confidence=((0.4, 2.0), (0.8, 0.5)))
+    H = np.diag([4e4, 4e4, 4e4, 1e8, 1e8, 0.0])  # depth unseen
+    result = OptimizationResult(np.eye(3), np.zeros(3), H)
+    var = {c: np.diag(answer_covariance(result, cfg, c)) for c in (0.2, 0.4, 0.6, 0.8, 1.0)}
+    cap = np.array([np.radians(cfg.max_sigma_deg) ** -2] * 3 + [cfg.max_sigma_m ** -2] * 2)
+    np.testing.assert_allclose(var[0.2][:5], 1 / (cap + np.diag(H)[:5] / 200.0), rtol=1e-9)  # 100 x 2.0
+    np.testing.assert_allclose(var[0.6][:5], 1 / (cap + np.diag(H)[:5] / 125.0), rtol=1e-9)  # 100 x 1.25
+    np.testing.assert_allclose(var[1.0][:5], var[0.8][:5])
+    assert var[0.4][0] > var[0.6][0] > var[0.8][0]
+    for v in var.values():
+        assert v[5] == pytest.approx(cfg.max_sigma_m**2)
 
 
 def test_the_logit_table_is_each_cells_clipped_log_odds():

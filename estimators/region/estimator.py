@@ -18,13 +18,13 @@ import numpy as np
 from estimators.base import EstimateInput, EstimateOutput, Estimator, InvalidInput, Status
 from estimators.region.correspondence import CellImage, LineModel, project_lines, sample_pixels
 from estimators.region.histograms import ColourHistograms
-from estimators.region.optimizer import OptimizerConfig, optimize
+from estimators.region.optimizer import OptimizerConfig, answer_covariance, optimize
 from estimators.region.session_store import SessionStore
 from estimators.region.viewpoint_model import ViewpointModel, cached_viewpoint_model
 from flextrack.geometry import se3, so3
 
 PARAMS = {"scales", "iterations_per_scale", "coarse_iterations", "half_segments", "line_weight", "damping_rotation",
-          "damping_translation", "covariance_inflation", "default_prior_sigma_m", "default_prior_sigma_deg",
+          "damping_translation", "covariance_inflation", "inflation_by_confidence", "default_prior_sigma_m", "default_prior_sigma_deg",
           "bins", "learning_rate", "max_sessions", "max_session_age_s", "views_subdivisions", "contour_points",
           "cache_dir", "min_confidence", "histogram_px", "refit_scales", "refits", "margin_factors", "session_weight",
           "retry_below", "retry_margin_factors", "coarse_search", "unmix",
@@ -83,7 +83,11 @@ class RegionEstimator(Estimator):
         ids = spec.object_ids or spec.objects.ids()
         line = LineModel(half_segments=int(p.pop("half_segments", LineModel.half_segments)))
         opt = OptimizerConfig(line_model=line, **{k: p.pop(k) for k in list(p) if k in {
-            "iterations_per_scale", "coarse_iterations", "line_weight", "damping_rotation", "damping_translation", "covariance_inflation"}})
+            "iterations_per_scale", "coarse_iterations", "line_weight", "damping_rotation", "damping_translation",
+            "covariance_inflation"}})
+        if "inflation_by_confidence" in p:
+            opt = replace(opt, inflation_by_confidence=tuple(tuple(float(v) for v in knot)
+                                                             for knot in p.pop("inflation_by_confidence")))
         if "scales" in p:
             opt = replace(opt, scales=tuple(int(s) for s in p.pop("scales")))
         if "cache_dir" in p:
@@ -294,7 +298,8 @@ class RegionEstimator(Estimator):
             return EstimateOutput(Status.OBJECT_NOT_FOUND, message=f"the colours do not fit the outline "
                                   f"(confidence {confidence:.2f} < {self.min_confidence})", confidence=confidence,
                                   stage_ms=stage)
-        return EstimateOutput(Status.OK, T, confidence, result.covariance, message, stage)
+        return EstimateOutput(Status.OK, T, confidence, answer_covariance(result, self.optimizer, confidence), message,
+                              stage)
 
 
 @functools.lru_cache(maxsize=8)

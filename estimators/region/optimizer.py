@@ -8,7 +8,9 @@ inverse of its covariance (pulling towards the prior pose), and each step is dam
 current pose (SRT3D's per-step Tikhonov). The answer's covariance is that of the image's evidence
 alone: the inverse of the lines' part of the final Hessian, divided by `covariance_inflation` (the
 lines' errors are correlated, neighbouring lines see the same pixels, and the contour model is
-approximate, the nearest of the sampled views, which a sum of independent terms overstates). The
+approximate, the nearest of the sampled views, which a sum of independent terms overstates) times a
+factor of the fit's colour agreement (`answer_covariance`: poorer agreement, larger errors than the
+lines' spread says). The
 prior is left out of it on purpose: the device that sent the prior holds it already, and a filter
 that fused an answer with its own prior counted in would count that prior twice at every frame
 (measured: its covariance halved with every answer and its NEES reached 1e6). Directions the
@@ -44,6 +46,9 @@ class OptimizerConfig:
     damping_rotation: float = 10000.0  # per-step Tikhonov, per rad^2 (tuned on the real cat, docs/region.md)
     damping_translation: float = 300000.0  # per m^2
     covariance_inflation: float = 350.0  # fitted on the even frames of LM-O: mean NEES 6 at 10 mm / 5 deg (docs/region.md)
+    # the inflation's factor by the answer's confidence (knots of a piecewise-linear curve, flat beyond the ends):
+    # fitted on LM-O's even frames, where the mean NEES at 350 fell from about 8 at confidence 0.4 to 3.4 above 0.75
+    inflation_by_confidence: tuple[tuple[float, float], ...] = ((0.4, 1.3), (0.85, 0.55))
     max_sigma_deg: float = 45.0  # the covariance's cap where the outline says nothing
     max_sigma_m: float = 0.3
 
@@ -74,7 +79,18 @@ def pose_error(R: np.ndarray, t: np.ndarray, R_ref: np.ndarray, t_ref: np.ndarra
 class OptimizationResult:
     R: np.ndarray
     t: np.ndarray
-    covariance: np.ndarray  # the image's evidence alone (see the module's docstring)
+    image_information: np.ndarray  # the lines' part of the final Hessian (the prior's left out)
+
+
+def answer_covariance(result: OptimizationResult, cfg: OptimizerConfig, confidence: float) -> np.ndarray:
+    """The answer's covariance: the image's evidence alone, inflated by `covariance_inflation` times the factor
+    `inflation_by_confidence` gives at the fit's colour agreement; directions the outline does not constrain
+    (depth, often) capped at `max_sigma_deg` / `max_sigma_m`."""
+    knots = np.asarray(cfg.inflation_by_confidence, dtype=float)
+    inflation = cfg.covariance_inflation * float(np.interp(confidence, knots[:, 0], knots[:, 1]))
+    floor = np.diag([np.radians(cfg.max_sigma_deg) ** -2] * 3 + [cfg.max_sigma_m ** -2] * 3)
+    covariance = np.linalg.inv(floor + result.image_information / inflation)
+    return 0.5 * (covariance + covariance.T)
 
 
 def optimize(frame: CellImage, K: np.ndarray, model: ViewpointModel, hist: ColourHistograms,
@@ -103,6 +119,4 @@ def optimize(frame: CellImage, K: np.ndarray, model: ViewpointModel, hist: Colou
                 return None
             R = so3.exp(step[:3]) @ R
             t = t + step[3:]
-    floor = np.diag([np.radians(cfg.max_sigma_deg) ** -2] * 3 + [cfg.max_sigma_m ** -2] * 3)
-    covariance = np.linalg.inv(floor + H_image / cfg.covariance_inflation)
-    return OptimizationResult(R, t, 0.5 * (covariance + covariance.T))
+    return OptimizationResult(R, t, H_image)
