@@ -139,18 +139,18 @@ def test_a_coarse_prior_starts_several_fits(region, rendered_frame):
     np.testing.assert_allclose(turns, [0.0] + [15.0] * 6, atol=1e-6)
 
 
-def test_starts_that_end_apart_widen_the_answers_covariance():
-    """With several starts, the others' ends about the kept one are added to the covariance (the image did not pull
-    them to one pose); one start, or others that failed, add nothing."""
+def test_fits_that_end_apart_widen_the_answers_covariance():
+    """With several fits of a frame (starts around a coarse prior, a retry), the others' ends about the kept one are
+    added to the covariance (the image did not pull them to one pose); one fit, or others that failed, add nothing."""
     kept = OptimizationResult(np.eye(3), np.zeros(3), np.eye(6))
     off = OptimizationResult(so3.exp([0.0, 0.0, 0.1]), np.array([0.02, 0.0, 0.0]), np.eye(6))
     fits = [(1.5, 0.8, kept, None), (1.2, 0.6, off, None), (0.9, 0.5, kept, None), (-1.0, -1.0, None, None)]
-    scatter = RegionEstimator._starts_scatter(fits, fits[0])
+    scatter = RegionEstimator._fits_scatter(fits, fits[0])
     expected = np.zeros((6, 6))
     expected[2, 2], expected[3, 3], expected[2, 3] = 0.1**2, 0.02**2, 0.1 * 0.02
     np.testing.assert_allclose(scatter, (expected + expected.T - np.diag(np.diag(expected))) / 4, atol=1e-12)
-    assert not RegionEstimator._starts_scatter(fits[:1], fits[0]).any()
-    assert not RegionEstimator._starts_scatter([fits[0], fits[3]], fits[0]).any()
+    assert not RegionEstimator._fits_scatter(fits[:1], fits[0]).any()
+    assert not RegionEstimator._fits_scatter([fits[0], fits[3]], fits[0]).any()
 
 
 def test_the_flip_check_refuses_a_prior_turned_about_the_line_of_sight(default_object, rendered_frame, tmp_path):

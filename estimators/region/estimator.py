@@ -157,10 +157,11 @@ class RegionEstimator(Estimator):
         return starts
 
     @staticmethod
-    def _starts_scatter(fits: list, best) -> np.ndarray:
-        """The spread of the other starts' fits about the kept one (zero with one start): where the starts
-        around a coarse prior end apart, the image did not pull them to one pose, and the answer is that unsure
-        (LM-O, odd frames, 20 mm / 10 deg: mean NEES 29 without it, 10.9 with it)."""
+    def _fits_scatter(fits: list, best) -> np.ndarray:
+        """The spread of the frame's other fits about the kept one: the other starts around a coarse prior, or the
+        first fit when a retry further off the outline won. Where they end apart the image did not pull them to
+        one pose, and the answer is that unsure (zero when one fit ran; LM-O, odd frames, 20 mm / 10 deg: mean
+        NEES 29 without it, 10.9 with it)."""
         kept = best[2]
         ends = [fit[2] for fit in fits if fit is not best and fit[2] is not None]
         if not ends:
@@ -310,7 +311,7 @@ class RegionEstimator(Estimator):
             return EstimateOutput(Status.OBJECT_NOT_FOUND, message=f"the colours do not fit the outline "
                                   f"(confidence {confidence:.2f} < {self.min_confidence})", confidence=confidence,
                                   stage_ms=stage)
-        covariance = answer_covariance(result, self.optimizer, confidence) + self._starts_scatter(fits, best)
+        covariance = answer_covariance(result, self.optimizer, confidence) + self._fits_scatter(fits, best)
         return EstimateOutput(Status.OK, T, confidence, covariance, message, stage)
 
 
