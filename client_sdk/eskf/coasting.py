@@ -32,10 +32,11 @@ import numpy as np
 from client_sdk.eskf.noise_matching import NoiseMatcher
 from client_sdk.eskf.options import FilterOptions
 from client_sdk.eskf.pose_update import skew
-from client_sdk.eskf.state import BG, TH, FilterState, N, P, V
+from client_sdk.eskf.state import BA, BG, TH, FilterState, N, P, V
 from client_sdk.propagation import NS, rotate
 
-_BA_DIAG = (np.arange(12, 15), np.arange(12, 15))
+_AXES = np.arange(3)
+_TH, _P, _V, _BG, _BA = (_AXES + block.start for block in (TH, P, V, BG, BA))  # diagonal indices
 
 
 def enter(st: FilterState, t_ns: int, w_m: tuple | None, w_var: float, rate_std: float) -> FilterState:
@@ -95,17 +96,15 @@ def step_cov(cov: np.ndarray, c: tuple, dt: float, q_alpha: float, q_a: float, a
     out = np.dot(np.dot(phi, cov), phi.T)
     d3, d2 = dt ** 3 / 3.0, dt * dt / 2.0
     qa2, qv2 = q_alpha * q_alpha, q_a * q_a
-    for k in range(3):
-        th, bg, p, v = k, 9 + k, 3 + k, 6 + k
-        out[th, th] += qa2 * d3
-        out[th, bg] -= qa2 * d2  # d_theta' = -d_bg
-        out[bg, th] -= qa2 * d2
-        out[bg, bg] += qa2 * dt
-        out[p, p] += qv2 * d3
-        out[p, v] += qv2 * d2
-        out[v, p] += qv2 * d2
-        out[v, v] += qv2 * dt
-    out[_BA_DIAG] += accel_walk ** 2 * dt
+    out[_TH, _TH] += qa2 * d3
+    out[_TH, _BG] -= qa2 * d2  # d_theta' = -d_bg
+    out[_BG, _TH] -= qa2 * d2
+    out[_BG, _BG] += qa2 * dt
+    out[_P, _P] += qv2 * d3
+    out[_P, _V] += qv2 * d2
+    out[_V, _P] += qv2 * d2
+    out[_V, _V] += qv2 * dt
+    out[_BA, _BA] += accel_walk ** 2 * dt
     return out, phi
 
 

@@ -40,7 +40,7 @@ from client_sdk.eskf.initializer import initial_state
 from client_sdk.eskf.noise_matching import NoiseMatcher, blocks
 from client_sdk.eskf.pose_update import pose_covariance, pose_jacobian, update
 from client_sdk.eskf.propagator import CovariancePropagator
-from client_sdk.eskf.state import BG, TD, FilterState
+from client_sdk.eskf.state import BG, TD, FilterState, G
 from client_sdk.imu_buffer import ImuBuffer
 from client_sdk.inspection import PoseInspector, Status
 from client_sdk.options import TrackerOptions
@@ -83,7 +83,7 @@ def _carried(st: FilterState, before: FilterState) -> FilterState:
         P[:, BG] = 0.0
         P[BG, BG] = before.held[1]
     cov = st.cov.copy()
-    k = slice(9, 18)  # b_g, b_a, g_O (`eskf.state`)
+    k = slice(BG.start, G.stop)  # b_g, b_a, g_O
     cov[k, :] = 0.0
     cov[:, k] = 0.0
     cov[k, k] = P[k, k]
@@ -449,7 +449,7 @@ class FilterTracker(TrackerBase):
         res = update(st, self._td, T, sigma, self._R_CB, self._t_CB, self._rate_at(tau, st),
                      0.0 if in_gap else self._rate_noise_var(tau), fo.gate_chi2, fo.gravity_state,
                      offset_observable=not in_gap)
-        self._match_noise(res, st, (tau - self._anchor[0]) * 1e-9)
+        self._match_noise(res, st, age_s)
         if not res.accepted:
             self._rejected += 1
             if self._rejected < fo.max_rejections:
