@@ -160,8 +160,8 @@ class RegionEstimator(Estimator):
     def _fits_scatter(fits: list, best) -> np.ndarray:
         """The spread of the frame's other fits about the kept one: the other starts around a coarse prior, or the
         first fit when a retry further off the outline won. Where they end apart the image did not pull them to
-        one pose, and the answer is that unsure (zero when one fit ran; LM-O, odd frames, 20 mm / 10 deg: mean
-        NEES 29 without it, 10.9 with it)."""
+        one pose, and the answer is that unsure (zero when one fit ran; docs/region.md: LM-O's mean NEES at
+        20 mm / 10 deg about halved)."""
         kept = best[2]
         ends = [fit[2] for fit in fits if fit is not best and fit[2] is not None]
         if not ends:

@@ -47,7 +47,8 @@ class OptimizerConfig:
     damping_translation: float = 300000.0  # per m^2
     covariance_inflation: float = 350.0  # fitted on the even frames of LM-O: mean NEES 6 at 10 mm / 5 deg (docs/region.md)
     # the inflation's factor by the answer's confidence (knots of a piecewise-linear curve, flat beyond the ends):
-    # fitted on LM-O's even frames, where the mean NEES at 350 fell from about 8 at confidence 0.4 to 3.4 above 0.75,
+    # fitted on LM-O's even frames, where the mean NEES at a flat 350 fell from 11.7 at confidence 0.3-0.45 to 3.2 above
+    # 0.75 (docs/results/region_lmo as stored at 69e45e2),
     # then scaled by 0.8 for a mean of 6 there with the fits' scatter (estimator._fits_scatter) added
     inflation_by_confidence: tuple[tuple[float, float], ...] = ((0.4, 1.05), (0.85, 0.45))
     max_sigma_deg: float = 45.0  # the covariance's cap where the outline says nothing
