@@ -24,6 +24,9 @@ PIXEL_CLIP = 0.02  # pixel posteriors kept in [clip, 1 - clip]: a histogram's em
 
 @dataclass
 class Lines:
+    """Arrays of M lines. `project_lines` makes each a view of one (10, M) array (a row a coordinate), so that
+    the per-line maths runs along contiguous rows; `.T` of a field is that row block."""
+
     centers: np.ndarray  # (M, 2) px, the projected contour points
     normals: np.ndarray  # (M, 2) unit, outwards in the image
     points_C: np.ndarray  # (M, 3) m, camera frame
@@ -35,26 +38,35 @@ def project_lines(model: ViewpointModel, R: np.ndarray, t: np.ndarray, K: np.nda
                   shape: tuple[int, int], margin_px: float = 2.0) -> Lines | None:
     """Lines of the view closest to the pose, those with their centre in the image and in front."""
     view = model.closest_view(R, t)
-    P = model.points[view] @ R.T + t
-    z = P[:, 2]
-    if np.any(z <= 1e-3):
+    n = model.points.shape[1]
+    A = R @ model.stacked[view]  # (3, 2N): the view's points, then its normals, turned into the camera frame
+    P = A[:, :n] + t[:, None]
+    x, y, z = P
+    if z.min() <= 1e-3:
         return None
     fx, fy = K[0, 0], K[1, 1]
-    uv = np.column_stack([fx * P[:, 0] / z + K[0, 2], fy * P[:, 1] / z + K[1, 2]])
-    n_C = model.normals[view] @ R.T
+    out = np.empty((10, n))  # rows: u, v, normal (2), P (3), fg px, bg px, and a spare for the normal's length
+    u, v = out[0], out[1]
+    np.divide(fx * x, z, out=u)
+    u += K[0, 2]
+    np.divide(fy * y, z, out=v)
+    v += K[1, 2]
     # the 3D normal's image direction: d(uv) along it
-    du = fx * (n_C[:, 0] * z - P[:, 0] * n_C[:, 2]) / z**2
-    dv = fy * (n_C[:, 1] * z - P[:, 1] * n_C[:, 2]) / z**2
-    n2 = np.column_stack([du, dv])
-    norm = np.linalg.norm(n2, axis=1)
+    nx, ny, nz = A[:, n:]
+    z2 = z * z
+    np.divide(fx * (nx * z - x * nz), z2, out=out[2])
+    np.divide(fy * (ny * z - y * nz), z2, out=out[3])
+    norm = out[9]
+    np.hypot(out[2], out[3], out=norm)
     h, w = shape
-    keep = (norm > 1e-9) & (uv[:, 0] >= margin_px) & (uv[:, 0] <= w - 1 - margin_px) & \
-        (uv[:, 1] >= margin_px) & (uv[:, 1] <= h - 1 - margin_px)
-    if keep.sum() < 8:
+    keep = (norm > 1e-9) & (u >= margin_px) & (u <= w - 1 - margin_px) & (v >= margin_px) & (v <= h - 1 - margin_px)
+    if np.count_nonzero(keep) < 8:
         return None
-    n2 = n2[keep] / norm[keep, None]
-    scale_px = np.sqrt(fx * fy) / z[keep]  # px per metre at the point's depth
-    return Lines(uv[keep], n2, P[keep], model.fg_dist[view][keep] * scale_px, model.bg_dist[view][keep] * scale_px)
+    out[4:7] = P
+    np.multiply(model.dists[view], np.sqrt(fx * fy) / z, out=out[7:9])  # m -> px at the point's depth
+    out = out[:, keep]
+    out[2:4] /= out[9]
+    return Lines(out[0:2].T, out[2:4].T, out[4:7].T, out[7], out[8])
 
 
 @dataclass(frozen=True)
@@ -77,12 +89,21 @@ class CellImage:
 
 def sample_pixels(frame: CellImage, lines: Lines, offsets_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Cells (M, S) at the pixels nearest to centre + offset * normal, and which lay in the frame's region
-    (a pixel off it reads as cell 0: only the mask says which are real)."""
+    (a pixel off it reads as some cell of the region: only the mask says which are real)."""
+    cells, inside = _sample_rows(frame, lines, offsets_px)
+    return cells.T, inside.T
+
+
+def _sample_rows(frame: CellImage, lines: Lines, offsets_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`sample_pixels` as (S, M): a row an offset, the lines along the rows."""
     h, w = frame.cells.shape
-    x = np.floor(lines.centers[:, :1] + offsets_px[None, :] * lines.normals[:, :1]).astype(np.intp) - frame.x0
-    y = np.floor(lines.centers[:, 1:] + offsets_px[None, :] * lines.normals[:, 1:]).astype(np.intp) - frame.y0
-    inside = (x.astype(np.uintp) < w) & (y.astype(np.uintp) < h)  # negatives wrap to huge: one test a side
-    return frame.cells.ravel().take(np.where(inside, y * w + x, 0)), inside
+    c, nrm = lines.centers.T, lines.normals.T
+    x = np.floor(c[0] + offsets_px[:, None] * nrm[0]).astype(np.intp) - frame.x0
+    y = np.floor(c[1] + offsets_px[:, None] * nrm[1]).astype(np.intp) - frame.y0
+    inside = (x.view(np.uintp) < w) & (y.view(np.uintp) < h)  # negatives read as huge: one test a side
+    y *= w
+    y += x
+    return frame.cells.ravel().take(y, mode="clip"), inside
 
 
 @dataclass(frozen=True)
@@ -100,35 +121,50 @@ def contour_distributions(frame: CellImage, logits: np.ndarray, lines: Lines, sc
     position, and whether the line carried information (both colours seen). `logits`: each histogram
     cell's clipped foreground log-odds (`ColourHistograms.logits(PIXEL_CLIP)`)."""
     H = cfg.half_segments
-    seg = np.arange(-H, H) + 0.5  # segment centres, segments
     # each segment is `scale` pixels; its posterior multiplies its pixels' (log-odds summed), of at most
     # `pixels_per_segment` of them spread over it (a coarse segment's every pixel costs time, not accuracy)
     n = min(scale, cfg.pixels_per_segment)
-    sub = (np.arange(n) + 0.5) / n - 0.5
-    offsets = ((seg[:, None] + sub[None, :]) * scale).ravel()
-    cells, inside = sample_pixels(frame, lines, offsets)
-    logit = logits[cells]
+    offsets = _offsets(H, n, scale)
+    # (S, M) and (2H, M) below: the lines run along the rows, so that every reduction adds whole rows
+    cells, inside = _sample_rows(frame, lines, offsets)
     # pixels beyond the object's other side (inwards) or another part of it (outwards), and off the
     # image, carry nothing
-    usable = inside & (offsets[None, :] > -lines.fg_px[:, None]) & (offsets[None, :] < lines.bg_px[:, None])
-    logit = np.where(usable, logit, 0.0).reshape(len(lines.centers), 2 * H, n).sum(axis=2) * (scale / n)
-    p_seg = (1.0 / (1.0 + np.exp(-np.clip(logit, -30, 30)))).astype(np.float32)  # (M, 2H)
+    usable = inside & (offsets[:, None] > -lines.fg_px) & (offsets[:, None] < lines.bg_px)
+    logit = np.where(usable, logits.take(cells), 0.0)
+    if n > 1:
+        logit = logit.reshape(2 * H, n, -1).sum(axis=1)
+    logit *= scale / n
+    np.clip(logit, -30, 30, out=logit)
+    p_seg = (1.0 / (1.0 + np.exp(-logit))).astype(np.float32)  # (2H, M)
     d, stay, flip = _step_model(H, cfg.amplitude, cfg.slope)
     # log-likelihood of each candidate d: the sum over segments of log(h_f p + (1 - h_f) (1 - p)), that is
     # log((1 - h_f) + (2 h_f - 1) p), in float32 (the segments' terms lie in [0.07, 1]: no precision is lost)
-    ll = np.log(stay[None, :, :] + flip[None, :, :] * p_seg[:, None, :]).sum(axis=2, dtype=np.float64)
-    ll -= ll.max(axis=1, keepdims=True)
-    prob = np.exp(ll)
-    prob /= prob.sum(axis=1, keepdims=True)
-    mean = prob @ d
-    var = prob @ d**2 - mean**2
+    terms = flip * p_seg  # (2D+1, 2H, M)
+    terms += stay
+    np.log(terms, out=terms)
+    ll = terms.sum(axis=1, dtype=np.float64)  # (2D+1, M)
+    ll -= ll.max(axis=0)
+    prob = np.exp(ll, out=ll)
+    prob /= prob.sum(axis=0)
+    mean = d @ prob
+    var = (d * d) @ prob - mean**2
     # a line carries information when it goes from foreground (inside) to background (outside) and its
     # contour is not pressed against the end of the range; a line across an occluder (background on
     # both sides) or along the object's print (foreground on both) would pull the pose wrongly
     lean = p_seg - 0.5
     D = len(d) // 2
-    informative = (lean[:, :H].sum(axis=1) > 0) & (lean[:, H:].sum(axis=1) < 0) & (np.abs(mean) < D - 0.5)
+    informative = (lean[:H].sum(axis=0) > 0) & (lean[H:].sum(axis=0) < 0) & (np.abs(mean) < D - 0.5)
     return mean * scale, np.maximum(var * scale**2, cfg.min_variance_px2), informative
+
+
+@functools.lru_cache(maxsize=32)
+def _offsets(half_segments: int, n: int, scale: int) -> np.ndarray:
+    """The sampled pixels' offsets along a line (px from its centre): `n` spread over each of the 2 H segments."""
+    seg = np.arange(-half_segments, half_segments) + 0.5  # segment centres, segments
+    sub = (np.arange(n) + 0.5) / n - 0.5
+    offsets = ((seg[:, None] + sub[None, :]) * scale).ravel()
+    offsets.flags.writeable = False
+    return offsets
 
 
 @functools.lru_cache(maxsize=8)
@@ -138,5 +174,8 @@ def _step_model(half_segments: int, amplitude: float, slope: float) -> tuple[np.
     seg = np.arange(-half_segments, half_segments) + 0.5
     D = half_segments - 2
     d = np.arange(-D, D + 1, dtype=float)
-    hf = 0.5 - amplitude * np.tanh((seg[None, :] - d[:, None]) / (2 * slope))  # (2D+1, 2H)
-    return d, (1 - hf).astype(np.float32), (2 * hf - 1).astype(np.float32)
+    hf = 0.5 - amplitude * np.tanh((seg[None, :] - d[:, None]) / (2 * slope))[:, :, None]  # (2D+1, 2H, 1)
+    out = d, (1 - hf).astype(np.float32), (2 * hf - 1).astype(np.float32)
+    for a in out:
+        a.flags.writeable = False
+    return out

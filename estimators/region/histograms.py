@@ -27,8 +27,13 @@ class ColourHistograms:
 
     def index(self, colours: np.ndarray) -> np.ndarray:
         """Cell of each (..., 3) uint8 RGB colour."""
-        c = colours.astype(np.int32) >> self.shift
-        return (c[..., 0] * self.bins + c[..., 1]) * self.bins + c[..., 2]
+        c = colours >> self.shift  # still uint8: one pass over the pixels a step, in place from here on
+        cells = c[..., 0].astype(np.int32)
+        cells *= self.bins
+        cells += c[..., 1]
+        cells *= self.bins
+        cells += c[..., 2]
+        return cells
 
     def _normalised(self, cells: np.ndarray) -> np.ndarray:
         h = np.bincount(cells.ravel(), minlength=self.bins**3).astype(float)
@@ -70,10 +75,16 @@ class ColourHistograms:
     def logits(self, clip: float) -> np.ndarray:
         """log(p / (1 - p)) of every cell's foreground posterior p kept in [clip, 1 - clip] (a histogram's empty
         cell is not certainty): one table lookup a pixel instead of a division and two logs."""
-        p = np.clip(self.posterior(np.arange(self.bins**3)), clip, 1 - clip)
+        p = np.clip(self._posteriors(), clip, 1 - clip)
         return np.log(p) - np.log1p(-p)
 
     def posterior(self, cells: np.ndarray) -> np.ndarray:
         """P(foreground | colour) for each cell index, in (0, 1)."""
+        if np.size(cells) > self.bins**3:  # many pixels: every cell's posterior once, then one lookup a pixel
+            return self._posteriors().take(cells)
         f, b = self.fg[cells], self.bg[cells]
         return (f + 1e-9) / (f + b + 2e-9)
+
+    def _posteriors(self) -> np.ndarray:
+        """Every cell's posterior, by cell index."""
+        return (self.fg + 1e-9) / (self.fg + self.bg + 2e-9)

@@ -56,19 +56,23 @@ class OptimizerConfig:
 
 
 def line_jacobians(lines: Lines, K: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """(M, 6): d(projection along the normal) / d(d_theta, d_t)."""
-    P = lines.points_C
-    z = P[:, 2]
-    fx, fy = K[0, 0], K[1, 1]
-    a = lines.normals[:, 0] * fx / z
-    b = lines.normals[:, 1] * fy / z
-    c = -(a * P[:, 0] + b * P[:, 1]) / z
-    Q = P - t  # the rotated model point: dP/d_theta = -[Q]x, so n^T J_rot = Q x dP, dP = (a, b, c) = n^T d(uv)/dP
-    J = np.empty((len(z), 6))
-    J[:, 0] = Q[:, 1] * c - Q[:, 2] * b
-    J[:, 1] = Q[:, 2] * a - Q[:, 0] * c
-    J[:, 2] = Q[:, 0] * b - Q[:, 1] * a
-    J[:, 3], J[:, 4], J[:, 5] = a, b, c
+    """(6, M), a row a pose coordinate: d(projection along the normal) / d(d_theta, d_t)."""
+    x, y, z = lines.points_C.T
+    nu, nv = lines.normals.T
+    J = np.empty((6, len(z)))
+    a, b, c = J[3], J[4], J[5]
+    np.multiply(nu, K[0, 0], out=a)
+    a /= z
+    np.multiply(nv, K[1, 1], out=b)
+    b /= z
+    np.multiply(a, x, out=c)
+    c += b * y
+    c /= -z
+    # the rotated model point Q = P - t: dP/d_theta = -[Q]x, so n^T J_rot = Q x dP, dP = (a, b, c) = n^T d(uv)/dP
+    qx, qy, qz = x - t[0], y - t[1], z - t[2]
+    np.subtract(qy * c, qz * b, out=J[0])
+    np.subtract(qz * a, qx * c, out=J[1])
+    np.subtract(qx * b, qy * a, out=J[2])
     return J
 
 
@@ -111,10 +115,10 @@ def optimize(frame: CellImage, K: np.ndarray, model: ViewpointModel, hist: Colou
             if lines is None:
                 return None
             mean, var, informative = contour_distributions(frame, logits, lines, scale, cfg.line_model)
-            J = line_jacobians(lines, K, t)[informative]
-            w = cfg.line_weight / var[informative]
-            H_image = (J * w[:, None]).T @ J
-            g = (J * w[:, None]).T @ mean[informative] - prior_information @ pose_error(R, t, R0, t0)
+            J = line_jacobians(lines, K, t)[:, informative]
+            Jw = J * (cfg.line_weight / var[informative])
+            H_image = Jw @ J.T
+            g = Jw @ mean[informative] - prior_information @ pose_error(R, t, R0, t0)
             try:
                 step = np.linalg.solve(prior_information + H_image + damping, g)
             except np.linalg.LinAlgError:

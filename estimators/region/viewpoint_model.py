@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -37,6 +37,19 @@ class ViewpointModel:
     fg_dist: np.ndarray  # (V, N) m along the normal inwards until the silhouette is left
     bg_dist: np.ndarray  # (V, N) m along the normal outwards until the silhouette is met again
     center: np.ndarray  # (3,) the box centre the views look at
+    # per view, the same numbers a row a coordinate, for `project_lines`' one matrix product a pose: the points
+    # then the normals (V, 3, 2N), the distances fg, bg (V, 2, N); the four fields above are views of them
+    stacked: np.ndarray = field(init=False, repr=False, compare=False)
+    dists: np.ndarray = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self):
+        n = self.points.shape[1]
+        stacked = np.concatenate([self.points, self.normals], axis=1).transpose(0, 2, 1).astype(float, order="C")
+        dists = np.stack([self.fg_dist, self.bg_dist], axis=1).astype(float, order="C")
+        for name, value in (("stacked", stacked), ("dists", dists), ("points", stacked[:, :, :n].transpose(0, 2, 1)),
+                            ("normals", stacked[:, :, n:].transpose(0, 2, 1)), ("fg_dist", dists[:, 0]),
+                            ("bg_dist", dists[:, 1])):
+            object.__setattr__(self, name, value)
 
     def closest_view(self, R_CO: np.ndarray, t_CO: np.ndarray) -> int:
         """The view whose direction is nearest the camera's direction as seen from the object."""
