@@ -49,68 +49,76 @@ def _project(K: np.ndarray, R: np.ndarray, t: np.ndarray, points_O: np.ndarray) 
     return (p[:, :2] / p[:, 2:3]) * np.array([K[0, 0], K[1, 1]]) + K[:2, 2]
 
 
-def _rows(K, R, t, points, normals, targets, w, prior) -> tuple[np.ndarray, np.ndarray]:
-    """Residuals and their Jacobian (w.r.t. [a rotation on the left of R, a shift of t] in the
-    camera frame) of the fit's rows: the first len(normals) points' distances to their targets along their
-    normals, then x and y of each remaining point (the keypoints) against its prior projection, weighted by w."""
-    m, k = len(normals), len(points) - len(normals)
-    q = points @ R.T  # the points turned; camera frame P = q + t
-    x, y, z = (q + t).T
-    fx, fy = K[0, 0], K[1, 1]
-    u, v = fx * x / z + K[0, 2], fy * y / z + K[1, 2]
-    # per row, its gradient g w.r.t. P (from d(u, v) / dP = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]]) and
-    # the turned point it belongs to; dP / d(rotation on the left) = -[q]x, so a row is [q x g, g]
-    g = np.zeros((m + 2 * k, 3))
-    nx, ny = normals[:, 0], normals[:, 1]
-    g[:m, 0], g[:m, 1] = nx * fx / z[:m], ny * fy / z[:m]
-    g[:m, 2] = -(nx * fx * x[:m] + ny * fy * y[:m]) / z[:m] ** 2
-    zk = z[m:]
-    g[m::2, 0], g[m::2, 2] = w * fx / zk, -w * fx * x[m:] / zk ** 2
-    g[m + 1::2, 1], g[m + 1::2, 2] = w * fy / zk, -w * fy * y[m:] / zk ** 2
-    qq = np.concatenate([q[:m], np.repeat(q[m:], 2, axis=0)])
-    r = np.empty(m + 2 * k)
-    r[:m] = (u[:m] - targets[:, 0]) * nx + (v[:m] - targets[:, 1]) * ny
-    r[m::2], r[m + 1::2] = w * (u[m:] - prior[:, 0]), w * (v[m:] - prior[:, 1])
-    J = np.empty((m + 2 * k, 6))
-    J[:, 0] = qq[:, 1] * g[:, 2] - qq[:, 2] * g[:, 1]
-    J[:, 1] = qq[:, 2] * g[:, 0] - qq[:, 0] * g[:, 2]
-    J[:, 2] = qq[:, 0] * g[:, 1] - qq[:, 1] * g[:, 0]
-    J[:, 3:] = g
-    return r, J
+class _Rows:
+    """The fit's rows, set up once a fit so that each evaluation is a dozen numpy calls: the first
+    len(normals) points' distances to their targets along their normals, then x and y of each remaining
+    point (the keypoints) against its prior projection, weighted by w. Each row is a direction a (the
+    normal, or w along x or y) times a point's projection, less a target: r = a . (u, v) - a . target."""
+
+    def __init__(self, K, points, normals, targets, w, prior):
+        m, k = len(normals), len(points) - len(normals)
+        idx = np.concatenate([np.arange(m), np.repeat(np.arange(m, m + k), 2)])  # the point of each row
+        a = np.zeros((m + 2 * k, 2))
+        a[:m], a[m::2, 0], a[m + 1::2, 1] = normals, w, w
+        goal = np.concatenate([targets, np.repeat(prior, 2, axis=0)])
+        self.points = points[idx]
+        self.af = a * np.array([K[0, 0], K[1, 1]])  # (u, v) = (fx, fy) * (x, y) / z + (cx, cy)
+        self.b = np.sum(a * (goal - K[:2, 2]), axis=1)
+
+    def __call__(self, R, t) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals and their Jacobian w.r.t. [a rotation on the left of R, a shift of t] in the camera frame."""
+        q = self.points @ R.T  # the points turned; camera frame P = q + t
+        P = q + t
+        iz = 1.0 / P[:, 2]
+        nx, ny = P[:, 0] * iz, P[:, 1] * iz
+        # per row, its gradient g w.r.t. P: a . d(u, v) / dP = (a_u fx / z, a_v fy / z, -(a_u fx x + a_v fy y) / z^2);
+        # dP / d(rotation on the left) = -[q]x, so a row is [q x g, g]
+        J = np.empty((len(q), 6))
+        g0, g1 = J[:, 3], J[:, 4]
+        np.multiply(self.af[:, 0], iz, out=g0)
+        np.multiply(self.af[:, 1], iz, out=g1)
+        g2 = J[:, 5]
+        np.negative(g0 * nx + g1 * ny, out=g2)
+        r = self.af[:, 0] * nx + self.af[:, 1] * ny - self.b
+        J[:, 0] = q[:, 1] * g2 - q[:, 2] * g1
+        J[:, 1] = q[:, 2] * g0 - q[:, 0] * g2
+        J[:, 2] = q[:, 0] * g1 - q[:, 1] * g0
+        return r, J
 
 
-def _robust_gauss_newton(K, R, t, points, normals, targets, w, prior, scale: float,
-                         iterations: int = 100) -> tuple[np.ndarray, np.ndarray]:
-    """The pose minimising sum_i rho(r_i^2), rho(z) = ln(1 + z / scale^2) (the Cauchy loss) over `_rows`'
-    residuals: Levenberg-Marquardt on the residuals and Jacobian scaled for the loss as scipy's
+def _robust_gauss_newton(rows: _Rows, R, t, scale: float, iterations: int = 100) -> tuple[np.ndarray, np.ndarray]:
+    """The pose minimising sum_i rho(r_i^2), rho(z) = ln(1 + z / scale^2) (the Cauchy loss) over the
+    rows' residuals: Levenberg-Marquardt on the residuals and Jacobian scaled for the loss as scipy's
     least_squares scales them (Triggs' correction), relinearised at each accepted pose, stopped where
     the cost falls by less than 1e-8 of itself (scipy's ftol). It solves scipy's least_squares(loss="cauchy",
     f_scale=scale) problem at a small part of the cost: scipy's general trust-region solver (an SVD
     per step, a dozen Python calls per evaluation) took more than half of the refinement's time."""
-    def cost(r):
-        return float(np.sum(np.log1p((r / scale) ** 2)))
-
-    r, J = _rows(K, R, t, points, normals, targets, w, prior)
-    c, lam = cost(r), 1.0  # damped at first (the step about the gradient's), as scipy's first trust region: a full
-    # Gauss-Newton step from a start some px off jumped into another minimum of the robust cost now and then
+    r, J = rows(R, t)
+    zz = (r / scale) ** 2
+    c, lam = float(np.sum(np.log1p(zz))), 1.0  # damped at first (the step about the gradient's), as scipy's first
+    # trust region: a full Gauss-Newton step from a start some px off jumped into another minimum of the robust cost
+    diagonal = np.diag_indices(6)
     for _ in range(iterations):
-        zz = (r / scale) ** 2
         rho1 = 1.0 / (1.0 + zz)
         js = np.sqrt(np.maximum(rho1 - 2.0 * zz * rho1 ** 2, 1e-12))  # rho' + 2 rho'' r^2, floored
-        Js, fs = J * js[:, None], r * rho1 / js
-        A, g = Js.T @ Js, Js.T @ fs
+        Js = J * js[:, None]
+        A, g = Js.T @ Js, Js.T @ (r * rho1 / js)
+        damping = A[diagonal] + 1e-12
         while True:
-            dx = -np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), g)
+            D = A.copy()
+            D[diagonal] += lam * damping
+            dx = -np.linalg.solve(D, g)
             R2, t2 = cv2.Rodrigues(dx[:3])[0] @ R, t + dx[3:]
-            r2, J2 = _rows(K, R2, t2, points, normals, targets, w, prior)
-            c2 = cost(r2)
+            r2, J2 = rows(R2, t2)
+            zz2 = (r2 / scale) ** 2
+            c2 = float(np.sum(np.log1p(zz2)))
             if c2 <= c or lam > 1e8:
                 break
             lam *= 10.0
         if c2 > c:
             break
         converged = c - c2 <= 1e-8 * c or np.max(np.abs(dx)) < 1e-10
-        R, t, r, J, c, lam = R2, t2, r2, J2, c2, max(lam / 10.0, 1e-9)
+        R, t, r, J, zz, c, lam = R2, t2, r2, J2, zz2, c2, max(lam / 10.0, 1e-9)
         if converged:
             break
     return R, t
@@ -161,25 +169,27 @@ class ContourRefiner:
         rim = np.flatnonzero(drawn)
         # coordinates in 1/16 raster px (shift=4); raster px centre (i + 0.5) / OVERSAMPLE image px
         tri = np.round(((uv[self.faces[rim]] - lo) * OVERSAMPLE - 0.5) * 16).astype(np.int32)
+        fill = cv2.fillConvexPoly  # (mask, points, colour, cv2.LINE_8, shift 4), positional: a third faster a call
         for triangle in tri:  # one by one: fillPoly on many polygons fills their overlaps even-odd
-            cv2.fillConvexPoly(mask, triangle, 1, lineType=cv2.LINE_8, shift=4)
+            fill(mask, triangle, 1, 8, 4)
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         if not contours:
             return None
         c = max(contours, key=len)[:, 0, :].astype(float)
         if len(c) < 24:
             return None
-        # tangent over +-3 raster px, outward normal. The points are the outline pixels' centres: OpenCV's
-        # fill is inclusive, and the true outline lies about there, not half a raster px further out.
-        tangent = np.roll(c, -3, axis=0) - np.roll(c, 3, axis=0)
+        # `points` of the outline's pixels, evenly spaced, with the tangent over +-3 raster px and the outward
+        # normal. The points are the outline pixels' centres: OpenCV's fill is inclusive, and the true outline
+        # lies about there, not half a raster px further out.
+        pick = np.linspace(0, len(c), self.config.points, endpoint=False).astype(int)
+        tangent = c[(pick + 3) % len(c)] - c[pick - 3]
         normal = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
         normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-9)
+        c = c[pick]
         probe = np.round(c + 2 * normal).astype(int)
         inside = mask[np.clip(probe[:, 1], 0, size[1] - 1), np.clip(probe[:, 0], 0, size[0] - 1)] > 0
         normal[inside] *= -1
-        pick = np.linspace(0, len(c), self.config.points, endpoint=False).astype(int)
-        pts = (c[pick] + 0.5) / OVERSAMPLE + lo
-        normal = normal[pick]
+        pts = (c + 0.5) / OVERSAMPLE + lo
         # 3D point under each contour point: its ray at the depth of the nearest projected vertex
         # (an unbalanced tree with big leaves: the same nearest vertices, built in half the time, for one query)
         _, nearest = cKDTree(uv, leafsize=64, balanced_tree=False, compact_nodes=False).query(pts)
@@ -222,9 +232,9 @@ class ContourRefiner:
         """The pose (R, t) moved so that the contour points land on their edges along their normals,
         the keypoints held near their prior projections. Residual rows: one per contour point, then
         x and y per keypoint. `trim`: solved again without the points left over `fit_px` off."""
-        R1, t1 = _robust_gauss_newton(K, R, t, np.vstack([points_O, self.keypoints]), normals, targets,
-                                      np.sqrt(self.config.prior_weight) * np.ones(len(self.keypoints)), prior,
-                                      self.config.robust_px)
+        w = np.sqrt(self.config.prior_weight) * np.ones(len(self.keypoints))
+        rows = _Rows(K, np.vstack([points_O, self.keypoints]), normals, targets, w, prior)
+        R1, t1 = _robust_gauss_newton(rows, R, t, self.config.robust_px)
         m = len(points_O)
         if trim:  # the one-sided false edges out, the same start solved again
             along = np.sum((_project(K, R1, t1, points_O) - targets) * normals, axis=1)
@@ -233,8 +243,7 @@ class ContourRefiner:
                 return self._fit(K, R, t, points_O[near], normals[near], targets[near], prior, trim=False)
         # what the pose covariance is made of: the Jacobian at the solution (w.r.t. a left perturbation of
         # it in the camera frame, the wire convention) and the residuals, contour rows first
-        w = np.sqrt(self.config.prior_weight) * np.ones(len(self.keypoints))
-        r, J = _rows(K, R1, t1, np.vstack([points_O, self.keypoints]), normals, targets, w, prior)
+        r, J = rows(R1, t1)
         return R1, t1, {"J": J, "r": r, "m": m}
 
     def refine(self, image: np.ndarray, K: np.ndarray, T_CO: np.ndarray) -> tuple[np.ndarray, dict]:
