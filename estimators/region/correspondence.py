@@ -38,33 +38,34 @@ def project_lines(model: ViewpointModel, R: np.ndarray, t: np.ndarray, K: np.nda
                   shape: tuple[int, int], margin_px: float = 2.0) -> Lines | None:
     """Lines of the view closest to the pose, those with their centre in the image and in front."""
     view = model.closest_view(R, t)
-    n = model.points.shape[1]
     A = R @ model.stacked[view]  # (3, 2N): the view's points, then its normals, turned into the camera frame
-    P = A[:, :n] + t[:, None]
-    x, y, z = P
+    n = A.shape[1] // 2
+    P, nC = A[:, :n], A[:, n:]
+    P += t[:, None]
+    z = P[2]
     if z.min() <= 1e-3:
         return None
-    fx, fy = K[0, 0], K[1, 1]
+    f = K[:2, :2].diagonal()[:, None]  # fx, fy
     out = np.empty((10, n))  # rows: u, v, normal (2), P (3), fg px, bg px, and a spare for the normal's length
-    u, v = out[0], out[1]
-    np.divide(fx * x, z, out=u)
-    u += K[0, 2]
-    np.divide(fy * y, z, out=v)
-    v += K[1, 2]
+    uv, n2 = out[0:2], out[2:4]
+    np.multiply(P[:2], f, out=uv)
+    uv /= z
+    uv += K[:2, 2:]
     # the 3D normal's image direction: d(uv) along it
-    nx, ny, nz = A[:, n:]
-    z2 = z * z
-    np.divide(fx * (nx * z - x * nz), z2, out=out[2])
-    np.divide(fy * (ny * z - y * nz), z2, out=out[3])
+    np.multiply(nC[:2], z, out=n2)
+    n2 -= P[:2] * nC[2]
+    n2 *= f
+    n2 /= z * z
     norm = out[9]
-    np.hypot(out[2], out[3], out=norm)
+    np.hypot(n2[0], n2[1], out=norm)
     h, w = shape
-    keep = (norm > 1e-9) & (u >= margin_px) & (u <= w - 1 - margin_px) & (v >= margin_px) & (v <= h - 1 - margin_px)
+    keep = (uv >= margin_px) & (uv <= np.array([[w - 1 - margin_px], [h - 1 - margin_px]]))
+    keep = keep[0] & keep[1] & (norm > 1e-9)
     if np.count_nonzero(keep) < 8:
         return None
     out[4:7] = P
-    np.multiply(model.dists[view], np.sqrt(fx * fy) / z, out=out[7:9])  # m -> px at the point's depth
-    out = out[:, keep]
+    np.multiply(model.dists[view], np.sqrt(f[0, 0] * f[1, 0]) / z, out=out[7:9])  # m -> px at the point's depth
+    out = np.compress(keep, out, axis=1)  # C-ordered, unlike out[:, keep]: each row stays contiguous
     out[2:4] /= out[9]
     return Lines(out[0:2].T, out[2:4].T, out[4:7].T, out[7], out[8])
 
@@ -97,10 +98,13 @@ def sample_pixels(frame: CellImage, lines: Lines, offsets_px: np.ndarray) -> tup
 def _sample_rows(frame: CellImage, lines: Lines, offsets_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`sample_pixels` as (S, M): a row an offset, the lines along the rows."""
     h, w = frame.cells.shape
-    c, nrm = lines.centers.T, lines.normals.T
-    x = np.floor(c[0] + offsets_px[:, None] * nrm[0]).astype(np.intp) - frame.x0
-    y = np.floor(c[1] + offsets_px[:, None] * nrm[1]).astype(np.intp) - frame.y0
-    inside = (x.view(np.uintp) < w) & (y.view(np.uintp) < h)  # negatives read as huge: one test a side
+    xy = offsets_px[:, None] * lines.normals.T[:, None, :]  # (2, S, M): x then y
+    xy += lines.centers.T[:, None, :]
+    xy = np.floor(xy, out=xy).astype(np.intp)
+    xy -= np.array([frame.x0, frame.y0])[:, None, None]
+    inside = xy.view(np.uintp) < np.array([w, h], np.uintp)[:, None, None]  # negatives read as huge: one test a side
+    inside = inside[0] & inside[1]
+    x, y = xy
     y *= w
     y += x
     return frame.cells.ravel().take(y, mode="clip"), inside
@@ -133,28 +137,33 @@ def contour_distributions(frame: CellImage, logits: np.ndarray, lines: Lines, sc
     logit = np.where(usable, logits.take(cells), 0.0)
     if n > 1:
         logit = logit.reshape(2 * H, n, -1).sum(axis=1)
-    logit *= scale / n
+    logit *= -scale / n  # the segments' log-odds, negated for the logistic below
     np.clip(logit, -30, 30, out=logit)
-    p_seg = (1.0 / (1.0 + np.exp(-logit))).astype(np.float32)  # (2H, M)
-    d, stay, flip = _step_model(H, cfg.amplitude, cfg.slope)
-    # log-likelihood of each candidate d: the sum over segments of log(h_f p + (1 - h_f) (1 - p)), that is
-    # log((1 - h_f) + (2 h_f - 1) p), in float32 (the segments' terms lie in [0.07, 1]: no precision is lost)
+    np.exp(logit, out=logit)
+    logit += 1.0
+    p_seg = np.reciprocal(logit, out=logit).astype(np.float32)  # (2H, M)
+    d_powers, stay, flip = _step_model(H, cfg.amplitude, cfg.slope)
+    # log-likelihood of each candidate d: the log of the product over segments of h_f p + (1 - h_f) (1 - p), that
+    # is (1 - h_f) + (2 h_f - 1) p, in float32 (each term lies in [0.07, 1]: 2H = 16 of them are at least 3e-19,
+    # far from float32's underflow; one log a candidate instead of one a term)
     terms = flip * p_seg  # (2D+1, 2H, M)
     terms += stay
-    np.log(terms, out=terms)
-    ll = terms.sum(axis=1, dtype=np.float64)  # (2D+1, M)
+    ll = np.log(terms.prod(axis=1)).astype(np.float64)  # (2D+1, M)
     ll -= ll.max(axis=0)
     prob = np.exp(ll, out=ll)
     prob /= prob.sum(axis=0)
-    mean = d @ prob
-    var = (d * d) @ prob - mean**2
+    mean, var = d_powers @ prob  # the first two moments
+    var -= mean**2
     # a line carries information when it goes from foreground (inside) to background (outside) and its
     # contour is not pressed against the end of the range; a line across an occluder (background on
     # both sides) or along the object's print (foreground on both) would pull the pose wrongly
-    lean = p_seg - 0.5
-    D = len(d) // 2
-    informative = (lean[:H].sum(axis=0) > 0) & (lean[H:].sum(axis=0) < 0) & (np.abs(mean) < D - 0.5)
-    return mean * scale, np.maximum(var * scale**2, cfg.min_variance_px2), informative
+    p_seg -= 0.5
+    lean = p_seg.reshape(2, H, -1).sum(axis=1)  # inside, outside
+    D = len(d_powers[0]) // 2
+    informative = (lean[0] > 0) & (lean[1] < 0) & (np.abs(mean) < D - 0.5)
+    var *= scale**2
+    mean *= scale
+    return mean, np.maximum(var, cfg.min_variance_px2, out=var), informative
 
 
 @functools.lru_cache(maxsize=32)
@@ -169,13 +178,14 @@ def _offsets(half_segments: int, n: int, scale: int) -> np.ndarray:
 
 @functools.lru_cache(maxsize=8)
 def _step_model(half_segments: int, amplitude: float, slope: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The candidate contour positions d (segments, within 2 of the line's ends) and, per candidate and
-    segment, 1 - h_f and 2 h_f - 1 of SRT3D's smoothed step h_f(x) = 1/2 - amplitude tanh(x / (2 slope))."""
+    """The candidate contour positions d (segments, within 2 of the line's ends) and their squares, (2, 2D+1), and,
+    per candidate and segment, 1 - h_f and 2 h_f - 1 of SRT3D's smoothed step h_f(x) = 1/2 - amplitude tanh(x /
+    (2 slope)), (2D+1, 2H, 1)."""
     seg = np.arange(-half_segments, half_segments) + 0.5
     D = half_segments - 2
     d = np.arange(-D, D + 1, dtype=float)
-    hf = 0.5 - amplitude * np.tanh((seg[None, :] - d[:, None]) / (2 * slope))[:, :, None]  # (2D+1, 2H, 1)
-    out = d, (1 - hf).astype(np.float32), (2 * hf - 1).astype(np.float32)
+    hf = 0.5 - amplitude * np.tanh((seg[None, :] - d[:, None]) / (2 * slope))[:, :, None]
+    out = np.stack([d, d * d]), (1 - hf).astype(np.float32), (2 * hf - 1).astype(np.float32)
     for a in out:
         a.flags.writeable = False
     return out

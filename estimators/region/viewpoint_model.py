@@ -53,8 +53,8 @@ class ViewpointModel:
 
     def closest_view(self, R_CO: np.ndarray, t_CO: np.ndarray) -> int:
         """The view whose direction is nearest the camera's direction as seen from the object."""
-        cam_O = -R_CO.T @ t_CO - self.center  # camera centre in the object frame
-        return int(np.argmax(self.directions @ (cam_O / max(np.linalg.norm(cam_O), 1e-9))))
+        cam_O = -(t_CO @ R_CO) - self.center  # camera centre in the object frame (its length changes no argmax)
+        return int(np.argmax(self.directions @ cam_O))
 
     def save(self, path: Path) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
