@@ -46,7 +46,15 @@ def _inliers(h: np.ndarray, pixels: np.ndarray, vectors: np.ndarray, cos_thresho
     dx = h[:, :, None, 0] - pixels[None, None, :, 0]  # (K, H, N)
     dy = h[:, :, None, 1] - pixels[None, None, :, 1]
     dot = dx * vectors.T[0][:, None, :] + dy * vectors.T[1][:, None, :]
-    return (dot > 0) & (dot * dot > (cos_threshold * cos_threshold) * (dx * dx + dy * dy))
+    # (dot > 0) & (dot^2 > cos^2 |d|^2), in place: the (K, H, N) temporaries were most of its time
+    dx *= dx
+    dy *= dy
+    dx += dy
+    dx *= cos_threshold * cos_threshold
+    inliers = dot > 0
+    dot *= dot
+    inliers &= dot > dx
+    return inliers
 
 
 def vote(pixels: np.ndarray, vectors: np.ndarray, rng: np.random.Generator,
