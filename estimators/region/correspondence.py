@@ -12,6 +12,7 @@ which the optimizer treats as a Gaussian measurement of the projected contour po
 from __future__ import annotations
 
 import functools
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,9 +35,27 @@ class Lines:
     bg_px: np.ndarray  # (M,) how far outwards it stays off it (px)
 
 
+_recent = threading.local()  # this thread's last projections: (model, key, lines)
+
+
 def project_lines(model: ViewpointModel, R: np.ndarray, t: np.ndarray, K: np.ndarray,
                   shape: tuple[int, int], margin_px: float = 2.0) -> Lines | None:
-    """Lines of the view closest to the pose, those with their centre in the image and in front."""
+    """Lines of the view closest to the pose, those with their centre in the image and in front (read-only).
+
+    A fit projects the same pose twice, at the end of one optimisation and the start of the next (and the prior,
+    for the estimator and its first fit): the thread's last two projections are kept and given again."""
+    key = (R.tobytes(), t.tobytes(), K.tobytes(), tuple(shape), margin_px)
+    recent = getattr(_recent, "lines", None) or []
+    for entry in recent:
+        if entry[0] is model and entry[1] == key:
+            return entry[2]
+    lines = _project_lines(model, R, t, K, shape, margin_px)
+    _recent.lines = [(model, key, lines)] + recent[:1]
+    return lines
+
+
+def _project_lines(model: ViewpointModel, R: np.ndarray, t: np.ndarray, K: np.ndarray,
+                   shape: tuple[int, int], margin_px: float) -> Lines | None:
     view = model.closest_view(R, t)
     A = R @ model.stacked[view]  # (3, 2N): the view's points, then its normals, turned into the camera frame
     n = A.shape[1] // 2
@@ -67,6 +86,7 @@ def project_lines(model: ViewpointModel, R: np.ndarray, t: np.ndarray, K: np.nda
     np.multiply(model.dists[view], np.sqrt(f[0, 0] * f[1, 0]) / z, out=out[7:9])  # m -> px at the point's depth
     out = np.compress(keep, out, axis=1)  # C-ordered, unlike out[:, keep]: each row stays contiguous
     out[2:4] /= out[9]
+    out.flags.writeable = False  # shared by the callers that project the same pose
     return Lines(out[0:2].T, out[2:4].T, out[4:7].T, out[7], out[8])
 
 

@@ -52,24 +52,26 @@ class ColourHistograms:
 
     def mixed(self, other: ColourHistograms, weight: float) -> ColourHistograms:
         """A new pair: (1 - weight) of these and `weight` of the other's (both initialised)."""
-        out = ColourHistograms(self.bins, self.learning_rate_f, self.learning_rate_b)
-        out.fg = (1 - weight) * self.fg + weight * other.fg
-        out.bg = (1 - weight) * self.bg + weight * other.bg
-        out.initialised = True
-        return out
+        return self._like((1 - weight) * self.fg + weight * other.fg, (1 - weight) * self.bg + weight * other.bg)
 
     def unmixed(self, share: float) -> ColourHistograms:
         """A new pair with `share` of each histogram's samples taken to have come from the other side (samples
         labelled by an outline that is off): observed fg = (1 - s) F + s B and bg = (1 - s) B + s F, solved for
         F and B, negatives clipped."""
-        out = ColourHistograms(self.bins, self.learning_rate_f, self.learning_rate_b)
         if share <= 0 or not self.initialised:
-            out.fg, out.bg, out.initialised = self.fg.copy(), self.bg.copy(), self.initialised
+            out = self._like(self.fg.copy(), self.bg.copy())
+            out.initialised = self.initialised
             return out
         det = 1.0 - 2.0 * share  # (1 - s)^2 - s^2
         fg = np.maximum(((1 - share) * self.fg - share * self.bg) / det, 0.0)
         bg = np.maximum(((1 - share) * self.bg - share * self.fg) / det, 0.0)
-        out.fg, out.bg, out.initialised = fg / max(fg.sum(), 1e-12), bg / max(bg.sum(), 1e-12), True
+        return self._like(fg / max(fg.sum(), 1e-12), bg / max(bg.sum(), 1e-12))
+
+    def _like(self, fg: np.ndarray, bg: np.ndarray) -> ColourHistograms:
+        """A new, initialised pair with these settings and these histograms (no uniform ones made first)."""
+        out = object.__new__(ColourHistograms)
+        out.__dict__.update(self.__dict__)
+        out.fg, out.bg, out.initialised = fg, bg, True
         return out
 
     def logits(self, clip: float) -> np.ndarray:
