@@ -153,6 +153,21 @@ def test_fits_that_end_apart_widen_the_answers_covariance():
     assert not RegionEstimator._fits_scatter([fits[0], fits[3]], fits[0]).any()
 
 
+def test_a_fit_the_prior_rules_out_is_refused(default_object, rendered_frame, tmp_path):
+    """A prior 12 mm off that claims 1.5 mm: the fit finds the object, and its distance from the prior (24 here,
+    chi-square with 6 dof) says the two contradict each other: refused with a message, not a confident answer."""
+    image, T = rendered_frame
+    prior = T.copy()
+    prior[0, 3] += 0.012
+    request = EstimateInput(frame_id=0, capture_time_ns=0, camera=CAMERA, image=image, prior_T_CO=prior,
+                            prior_covariance=diagonal_covariance(np.radians(2.0), 0.0015))
+    options = {"views_subdivisions": SUBDIVISIONS, "cache_dir": tmp_path, "flip_check": False}
+    out = RegionEstimator("region", {"default": default_object}, **options).estimate(request)
+    assert out.status == Status.OBJECT_NOT_FOUND and "distance from the prior" in out.message, out.message
+    lenient = RegionEstimator("region", {"default": default_object}, max_prior_nis=100.0, **options).estimate(request)
+    assert lenient.status == Status.OK and metrics.proj_px(lenient.T_CO, T, CAMERA, default_object.vertices) < 2.0
+
+
 def test_the_flip_check_refuses_a_prior_turned_about_the_line_of_sight(default_object, rendered_frame, tmp_path):
     """A prior turned 180 deg in the image but claiming 5 deg: with the flip check on, refused with a message that
     says so; the same check leaves a good prior's answer alone."""

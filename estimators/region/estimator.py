@@ -29,7 +29,7 @@ PARAMS = {"scales", "iterations_per_scale", "coarse_iterations", "half_segments"
           "cache_dir", "min_confidence", "histogram_px", "refit_scales", "refits", "margin_factors", "session_weight",
           "retry_below", "retry_margin_factors", "coarse_search", "unmix",
           "refit_unmix", "multi_start_deg", "multi_start_sigmas", "flip_check", "flip_margin",
-          "flip_check_below"}
+          "flip_check_below", "max_prior_nis"}
 
 
 class RegionEstimator(Estimator):
@@ -48,7 +48,7 @@ class RegionEstimator(Estimator):
                  retry_below: float = 0.45, retry_margin_factors: tuple[float, float] | None = (1.0, 2.0),
                  coarse_search: bool = True, unmix: float = 0.3, refit_unmix: float = 0.15,
                  multi_start_deg: float = 8.0, multi_start_sigmas: float = 1.0, flip_check: bool = True,
-                 flip_margin: float = 0.05, flip_check_below: float = 1.2):
+                 flip_margin: float = 0.05, flip_check_below: float = 1.2, max_prior_nis: float = 16.8):
         """`objects`: object id -> ObjectModel (estimators.objects)."""
         super().__init__(name, list(objects))
         self._objects = dict(objects)
@@ -71,6 +71,7 @@ class RegionEstimator(Estimator):
         self.unmix, self.refit_unmix = unmix, refit_unmix
         self.multi_start_deg, self.multi_start_sigmas = multi_start_deg, multi_start_sigmas
         self.flip_check, self.flip_margin, self.flip_check_below = flip_check, flip_margin, flip_check_below
+        self.max_prior_nis = max_prior_nis
         self._models: dict[str, ViewpointModel] = {}
         self._models_lock = threading.Lock()
         self.sessions: SessionStore[ColourHistograms] = SessionStore(
@@ -168,6 +169,16 @@ class RegionEstimator(Estimator):
             return np.zeros((6, 6))
         e = np.array([pose_error(end.R, end.t, kept.R, kept.t) for end in ends])
         return e.T @ e / len(fits)
+
+    @staticmethod
+    def prior_nis(result, R0: np.ndarray, t0: np.ndarray, prior_covariance: np.ndarray,
+                  covariance: np.ndarray) -> float:
+        """The fit's squared Mahalanobis distance from the prior under both covariances (a filter's innovation test,
+        chi-square with 6 dof where both are honest). Over `max_prior_nis` (16.8: the 99 % point) the answer and
+        the prior contradict each other, and one of them is wrong: on LM-O mostly fits that drifted onto something
+        else where the object is barely visible (docs/region.md)."""
+        innovation = pose_error(result.R, result.t, R0, t0)
+        return float(innovation @ np.linalg.solve(prior_covariance + covariance, innovation))
 
     def _symmetric(self, object_id: str, a, b, tolerance_deg: float = 10.0) -> bool:
         """Whether two fitted poses are one another up to one of the object's symmetries (models_info.json): then
@@ -312,6 +323,12 @@ class RegionEstimator(Estimator):
                                   f"(confidence {confidence:.2f} < {self.min_confidence})", confidence=confidence,
                                   stage_ms=stage)
         covariance = answer_covariance(result, self.optimizer, confidence) + self._fits_scatter(fits, best)
+        nis = self.prior_nis(result, R0, t0, cov, covariance)
+        if nis > self.max_prior_nis:
+            return EstimateOutput(Status.OBJECT_NOT_FOUND, message=(
+                f"the fit ended where the prior says the object is not: its distance from the prior is {nis:.1f} "
+                f"(chi-square, 6 dof) > {self.max_prior_nis}; the prior's covariance is too tight or the fit took "
+                "something else for the object"), confidence=confidence, stage_ms=stage)
         return EstimateOutput(Status.OK, T, confidence, covariance, message, stage)
 
 
