@@ -209,8 +209,15 @@ class ContourRefiner:
         """Signed offsets along the normals to the chosen edge, and which points found one."""
         cfg = self.config
         steps = np.arange(-cfg.search_px - cfg.step_px, cfg.search_px + cfg.step_px + 0.01, 0.5)
-        xy = pts[:, None, :] + steps[None, :, None] * normals[:, None, :]
-        profile = cv2.remap(image, xy[..., 0].astype(np.float32), xy[..., 1].astype(np.float32),
+        xy = (pts[:, None, :] + steps[None, :, None] * normals[:, None, :]).astype(np.float32)
+        # only the image's part under the samples as float (on whole frames the conversion cost more than the
+        # rest): with the integer corner subtracted exactly and the part holding every pixel that the
+        # interpolation reads (remap rounds to 1/32 px), the profile is the one of the whole image
+        h, w = image.shape[:2]
+        x0, y0 = (min(max(int(np.floor(xy[..., i].min())) - 1, 0), n - 1) for i, n in ((0, w), (1, h)))
+        x1, y1 = (max(min(int(np.floor(xy[..., i].max())) + 3, n), 1) for i, n in ((0, w), (1, h)))
+        part = image[y0:max(y1, y0 + 1), x0:max(x1, x0 + 1)].astype(np.float32)
+        profile = cv2.remap(part, xy[..., 0] - np.float32(x0), xy[..., 1] - np.float32(y0),
                             cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         # a step between the means of the w px inside and the w px outside of each position: texture on
         # one side (the object's print) adds noise to it but does not move its peak, as a derivative's
@@ -261,7 +268,6 @@ class ContourRefiner:
         """The refined pose and what happened ({"points": edges used, "shift_px": keypoint motion,
         "kept": True when the starting pose was kept})."""
         cfg = self.config
-        img = image.astype(np.float32)
         R, t = T_CO[:3, :3].copy(), T_CO[:3, 3].copy()
         prior = _project(K, R, t, self.keypoints)
         used, fit, gn = 0, 0.0, None
@@ -270,7 +276,7 @@ class ContourRefiner:
             if contour is None:
                 break
             pts, normals, points_O = contour
-            offset, found = self._edges(img, pts, normals)
+            offset, found = self._edges(image, pts, normals)
             used = int(found.sum())
             if used < cfg.min_points:
                 break
