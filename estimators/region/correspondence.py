@@ -178,12 +178,35 @@ def contour_distributions(frame: CellImage, logits: np.ndarray, lines: Lines, sc
     # contour is not pressed against the end of the range; a line across an occluder (background on
     # both sides) or along the object's print (foreground on both) would pull the pose wrongly
     p_seg -= 0.5
-    lean = p_seg.reshape(2, H, -1).sum(axis=1)  # inside, outside
+    lean = _run_sums(p_seg.reshape(2, H, -1))  # inside, outside
     D = len(d_powers[0]) // 2
     informative = (lean[0] > 0) & (lean[1] < 0) & (np.abs(mean) < D - 0.5)
     var *= scale**2
     mean *= scale
     return mean, np.maximum(var, cfg.min_variance_px2, out=var), informative
+
+
+def _run_sums(x: np.ndarray) -> np.ndarray:
+    """(2, n, M) -> (2, M): the sums over n, added in the order numpy adds a contiguous run of n <= 128 float32s
+    (eight running sums, then in pairs). A line's colour lean is often balanced exactly (clipped posteriors cancel),
+    and another order's rounding would then flip its informative test: on LM-O, 14 of 210 answers moved by 0.2 to
+    24 px with row-by-row sums."""
+    n = x.shape[1]
+    if n < 8:
+        total = x[:, 0].copy()
+        for i in range(1, n):
+            total += x[:, i]
+        return total
+    whole = n - n % 8
+    runs = x[:, 0:8].copy()
+    for i in range(8, whole, 8):
+        runs += x[:, i:i + 8]
+    pairs = runs[:, 0::2] + runs[:, 1::2]
+    quads = pairs[:, 0::2] + pairs[:, 1::2]
+    total = quads[:, 0] + quads[:, 1]
+    for i in range(whole, n):
+        total += x[:, i]
+    return total
 
 
 @functools.lru_cache(maxsize=32)
