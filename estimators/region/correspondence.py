@@ -84,7 +84,7 @@ def _project_lines(model: ViewpointModel, R: np.ndarray, t: np.ndarray, K: np.nd
         return None
     out[4:7] = P
     np.multiply(model.dists[view], np.sqrt(f[0, 0] * f[1, 0]) / z, out=out[7:9])  # m -> px at the point's depth
-    out = np.compress(keep, out, axis=1)  # C-ordered, unlike out[:, keep]: each row stays contiguous
+    out = out.compress(keep, axis=1)  # C-ordered, unlike out[:, keep]: each row stays contiguous
     out[2:4] /= out[9]
     out.flags.writeable = False  # shared by the callers that project the same pose
     return Lines(out[0:2].T, out[2:4].T, out[4:7].T, out[7], out[8])
@@ -118,16 +118,27 @@ def sample_pixels(frame: CellImage, lines: Lines, offsets_px: np.ndarray) -> tup
 def _sample_rows(frame: CellImage, lines: Lines, offsets_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`sample_pixels` as (S, M): a row an offset, the lines along the rows."""
     h, w = frame.cells.shape
-    xy = offsets_px[:, None] * lines.normals.T[:, None, :]  # (2, S, M): x then y
-    xy += lines.centers.T[:, None, :]
-    xy = np.floor(xy, out=xy).astype(np.intp)
-    xy -= np.array([frame.x0, frame.y0])[:, None, None]
-    inside = xy.view(np.uintp) < np.array([w, h], np.uintp)[:, None, None]  # negatives read as huge: one test a side
-    inside = inside[0] & inside[1]
-    x, y = xy
+    s = len(offsets_px)
+    xy = _steps(offsets_px) @ np.concatenate([lines.normals.T, lines.centers.T])  # (2S, M): x, then y
+    xy = np.floor(xy, out=xy).astype(np.int32)
+    x, y = xy[:s], xy[s:]
+    x -= frame.x0
+    y -= frame.y0
+    inside = (x.view(np.uint32) < w) & (y.view(np.uint32) < h)  # negatives read as huge: one test a side
     y *= w
     y += x
     return frame.cells.ravel().take(y, mode="clip"), inside
+
+
+def _steps(offsets_px: np.ndarray) -> np.ndarray:
+    """(2S, 4): with the lines' rows (normal x, normal y, centre x, centre y) as the right factor, one matrix
+    product gives every x = offset * normal x + centre x, then every y (the same sums, rounded the same way: the
+    zeros add nothing)."""
+    s = len(offsets_px)
+    steps = np.zeros((2 * s, 4))
+    steps[:s, 0] = steps[s:, 1] = offsets_px
+    steps[:s, 2] = steps[s:, 3] = 1.0
+    return steps
 
 
 @dataclass(frozen=True)
@@ -155,7 +166,9 @@ def contour_distributions(frame: CellImage, logits: np.ndarray, lines: Lines, sc
     # image, carry nothing
     usable = inside & (offsets[:, None] > -lines.fg_px) & (offsets[:, None] < lines.bg_px)
     logit = np.where(usable, logits.take(cells), 0.0)
-    if n > 1:
+    if n == 2:  # the segment's two pixels (rows 2k and 2k + 1)
+        logit = logit[0::2] + logit[1::2]
+    elif n > 2:
         logit = logit.reshape(2 * H, n, -1).sum(axis=1)
     logit *= -scale / n  # the segments' log-odds, negated for the logistic below
     np.clip(logit, -30, 30, out=logit)

@@ -116,14 +116,13 @@ def optimize(frame: CellImage, K: np.ndarray, model: ViewpointModel, hist: Colou
             if lines is None:
                 return None
             mean, var, informative = contour_distributions(frame, logits, lines, scale, cfg.line_model)
-            J = np.compress(informative, line_jacobians(lines, K, t), axis=1)
-            Jw = J * (cfg.line_weight / np.compress(informative, var))
+            J = line_jacobians(lines, K, t).compress(informative, axis=1)
+            Jw = J * (cfg.line_weight / var.compress(informative))
             H_image = Jw @ J.T
-            g = Jw @ np.compress(informative, mean) - prior_information @ pose_error(R, t, R0, t0)
-            try:
-                step = np.linalg.solve(damped + H_image, g)
-            except np.linalg.LinAlgError:
+            g = Jw @ mean.compress(informative) - prior_information @ pose_error(R, t, R0, t0)
+            solved, step = cv2.solve(damped + H_image, g[:, None], flags=cv2.DECOMP_LU)  # LAPACK's dgesv's job
+            if not solved:
                 return None
             R = cv2.Rodrigues(step[:3])[0] @ R
-            t = t + step[3:]
+            t = t + step[3:, 0]
     return OptimizationResult(R, t, H_image)

@@ -38,7 +38,8 @@ class ViewpointModel:
     bg_dist: np.ndarray  # (V, N) m along the normal outwards until the silhouette is met again
     center: np.ndarray  # (3,) the box centre the views look at
     # per view, the same numbers a row a coordinate, for `project_lines`' one matrix product a pose: the points
-    # then the normals (V, 3, 2N), the distances fg, bg (V, 2, N); the four fields above are views of them
+    # then the normals (V, 3, 2N), the distances fg, bg (V, 2, N); the four fields above are views of them (and
+    # the directions, of a (3, V) array)
     stacked: np.ndarray = field(init=False, repr=False, compare=False)
     dists: np.ndarray = field(init=False, repr=False, compare=False)
 
@@ -46,7 +47,8 @@ class ViewpointModel:
         n = self.points.shape[1]
         stacked = np.concatenate([self.points, self.normals], axis=1).transpose(0, 2, 1).astype(float, order="C")
         dists = np.stack([self.fg_dist, self.bg_dist], axis=1).astype(float, order="C")
-        for name, value in (("stacked", stacked), ("dists", dists), ("points", stacked[:, :, :n].transpose(0, 2, 1)),
+        directions = np.ascontiguousarray(np.asarray(self.directions, float).T).T
+        for name, value in (("directions", directions), ("stacked", stacked), ("dists", dists), ("points", stacked[:, :, :n].transpose(0, 2, 1)),
                             ("normals", stacked[:, :, n:].transpose(0, 2, 1)), ("fg_dist", dists[:, 0]),
                             ("bg_dist", dists[:, 1])):
             object.__setattr__(self, name, value)
@@ -54,7 +56,7 @@ class ViewpointModel:
     def closest_view(self, R_CO: np.ndarray, t_CO: np.ndarray) -> int:
         """The view whose direction is nearest the camera's direction as seen from the object."""
         cam_O = -(t_CO @ R_CO) - self.center  # camera centre in the object frame (its length changes no argmax)
-        return int(np.argmax(self.directions @ cam_O))
+        return int((cam_O @ self.directions.T).argmax())  # (3, V) contiguous: the product runs along the views
 
     def save(self, path: Path) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
