@@ -50,6 +50,18 @@ def _dot2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]
 
 
+def _sample(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """The image (uint8) as float32, bilinear at the float32 points xy (..., 2), its border replicated: what
+    cv2.remap of the whole image converted to float gives, converting only the part under the points (on
+    whole frames the conversion cost more than the rest of the edge search). The part's integer corner is
+    subtracted exactly and it holds every pixel the interpolation reads (remap rounds to 1/32 px)."""
+    h, w = image.shape[:2]
+    x0, y0 = (min(max(int(np.floor(xy[..., i].min())) - 1, 0), n - 1) for i, n in ((0, w), (1, h)))
+    x1, y1 = (max(min(int(np.floor(xy[..., i].max())) + 3, n), x + 1) for i, n, x in ((0, w, x0), (1, h, y0)))
+    return cv2.remap(image[y0:y1, x0:x1].astype(np.float32), xy[..., 0] - np.float32(x0), xy[..., 1] - np.float32(y0),
+                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
 def _project(K: np.ndarray, R: np.ndarray, t: np.ndarray, points_O: np.ndarray) -> np.ndarray:
     p = points_O @ R.T + t
     return (p[:, :2] / p[:, 2:3]) * np.array([K[0, 0], K[1, 1]]) + K[:2, 2]
@@ -209,16 +221,7 @@ class ContourRefiner:
         """Signed offsets along the normals to the chosen edge, and which points found one."""
         cfg = self.config
         steps = np.arange(-cfg.search_px - cfg.step_px, cfg.search_px + cfg.step_px + 0.01, 0.5)
-        xy = (pts[:, None, :] + steps[None, :, None] * normals[:, None, :]).astype(np.float32)
-        # only the image's part under the samples as float (on whole frames the conversion cost more than the
-        # rest): with the integer corner subtracted exactly and the part holding every pixel that the
-        # interpolation reads (remap rounds to 1/32 px), the profile is the one of the whole image
-        h, w = image.shape[:2]
-        x0, y0 = (min(max(int(np.floor(xy[..., i].min())) - 1, 0), n - 1) for i, n in ((0, w), (1, h)))
-        x1, y1 = (max(min(int(np.floor(xy[..., i].max())) + 3, n), 1) for i, n in ((0, w), (1, h)))
-        part = image[y0:max(y1, y0 + 1), x0:max(x1, x0 + 1)].astype(np.float32)
-        profile = cv2.remap(part, xy[..., 0] - np.float32(x0), xy[..., 1] - np.float32(y0),
-                            cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        profile = _sample(image, (pts[:, None, :] + steps[None, :, None] * normals[:, None, :]).astype(np.float32))
         # a step between the means of the w px inside and the w px outside of each position: texture on
         # one side (the object's print) adds noise to it but does not move its peak, as a derivative's
         w = 2 * self.config.step_px

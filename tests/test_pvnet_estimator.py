@@ -262,6 +262,48 @@ def test_an_outline_far_from_the_object_does_not_fit(registry, rendered):
     assert info["fit"] < 0.5
 
 
+def test_the_refinements_rows_have_the_jacobian_of_their_residuals(registry, rendered):
+    """The fit's residuals (contour points along their normals, keypoints against their prior) and the
+    hand-written Jacobian w.r.t. a left rotation and a shift in the camera frame, which the fit steps
+    on and the pose covariance is made of, agree with central differences."""
+    from estimators.contour_refine import _Rows
+
+    obj = registry.get("default")
+    _, T = rendered[0]
+    R, t = T[:3, :3], T[:3, 3]
+    rng = np.random.default_rng(3)
+    points = obj.vertices[rng.choice(len(obj.vertices), 40, replace=False)]
+    normals = rng.normal(size=(40, 2))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    rows = _Rows(CAMERA.K, np.vstack([points, obj.keypoints]), normals, rng.uniform(200, 400, (40, 2)),
+                 np.full(len(obj.keypoints), 0.3), rng.uniform(200, 400, (len(obj.keypoints), 2)))
+    r, J = rows(R, t)
+    assert r.shape == (40 + 2 * len(obj.keypoints),) and J.shape == (len(r), 6)
+    numeric = np.empty_like(J)
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = 1e-6
+        plus, minus = (rows(so3.exp(s * d[:3]) @ R, t + s * d[3:])[0] for s in (1.0, -1.0))
+        numeric[:, k] = (plus - minus) / 2e-6
+    np.testing.assert_allclose(J, numeric, rtol=1e-5, atol=1e-3)
+
+
+def test_the_edge_search_samples_as_the_whole_image_would(rendered):
+    """The edge search converts only the image's part under its samples to float: the samples are the
+    whole image's, to the bit, inside it, across its borders and wholly beyond them."""
+    from estimators.contour_refine import _sample
+
+    rgb = rendered[0][0]
+    whole = rgb.astype(np.float32)
+    rng = np.random.default_rng(5)
+    h, w = rgb.shape[:2]
+    for lo, hi in (((100, 100), (300, 200)), ((-20, -15), (40, 30)), ((w - 30, h - 20), (w + 25, h + 15)),
+                   ((w + 5, 10), (w + 40, 60)), ((-60, -50), (-10, -5)), ((0, 0), (w - 1, h - 1))):
+        xy = rng.uniform(lo, hi, (50, 17, 2)).astype(np.float32)
+        expected = cv2.remap(whole, xy[..., 0], xy[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        assert np.array_equal(_sample(rgb, xy), expected), (lo, hi)
+
+
 @pytest.mark.skipif(not SHIPPED.is_file(), reason=f"no shipped model at {SHIPPED}")
 def test_refinement_can_be_turned_off_and_its_outline_check_refuses(registry, rendered):
     out = PvnetEstimator(registry, SHIPPED, refine=False).estimate(_input(rendered[0][0]))
