@@ -36,6 +36,7 @@ import time
 from dataclasses import dataclass, replace
 from dataclasses import fields as dataclass_fields
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -176,6 +177,16 @@ def _unturn(points: np.ndarray, vectors: np.ndarray, turns: int, size: int) -> t
         points = np.stack([size - 1 - points[:, 1], points[:, 0]], axis=1)
         vectors = np.stack([-vectors[..., 1], vectors[..., 0]], axis=-1)
     return points, vectors
+
+
+class _Pick(NamedTuple):
+    """`_select`'s winner (None: no candidate), its score, its votes (keypoints, spreads: its covariance is
+    made once it has won) and the voting and PnP milliseconds over the candidates."""
+    best: EstimateOutput | None = None
+    score: float = 0.0
+    votes: tuple | None = None
+    voting_ms: float = 0.0
+    pnp_ms: float = 0.0
 
 
 class PvnetEstimator(Estimator):
@@ -393,14 +404,16 @@ class PvnetEstimator(Estimator):
         picks = [self._select(inp, cands) for inp, cands in zip(inputs, fields)]
         selecting = time.perf_counter() - t1
         if self.rotations == 4:
-            redo = [i for i, (best, _, _) in enumerate(picks) if found[i] and (
-                best.status != Status.OK or best.confidence < self.turn_below)]
+            redo = [i for i, pick in enumerate(picks) if found[i] and (
+                pick.best is None or pick.best.status != Status.OK or pick.best.confidence < self.turn_below)]
             if redo:
                 turned = self._crop_fields([images[i] for i in redo], [halves[i] for i in redo], factor,
                                            [found[i] for i in redo], (1, 2, 3), fallback=False)
+                t1 = time.perf_counter()
                 for i, more in zip(redo, turned):
-                    if more:
-                        picks[i] = self._select(inputs[i], fields[i] + more)
+                    if more:  # the upright crops' pick goes on over the turned ones
+                        picks[i] = self._select(inputs[i], more, picks[i])
+                selecting += time.perf_counter() - t1
         inference_ms = (time.perf_counter() - t0 - selecting) * 1e3 / n
         return [self._solve(inp, pick, inference_ms) for inp, pick in zip(inputs, picks)]
 
@@ -426,16 +439,14 @@ class PvnetEstimator(Estimator):
             fields[i] += zoomed[p] or ([(found[i][j][0], found[i][j][1], 0)] if fallback else [])
         return fields
 
-    def _select(self, inp: EstimateInput, candidates: list) -> tuple[EstimateOutput, float, float]:
+    def _select(self, inp: EstimateInput, candidates: list, start: _Pick | None = None) -> _Pick:
         """Votes and solves each candidate; the most confident pose wins, a turned crop's only by a factor
         `turn_margin`: the network was trained on objects turned at most about 70 deg from upright, and
         in a crop turned further it may still see an upright one, a pose some pixels off with a
         confidence near the right one's. Turns are for views rolled far from upright, where the
-        unturned crop fails. Returns the winner and the voting and PnP milliseconds."""
-        if not candidates:
-            return EstimateOutput(Status.OBJECT_NOT_FOUND, message="the object mask is too small or empty"), 0.0, 0.0
-        voting_ms = pnp_ms = 0.0
-        best, best_score = None, 0.0
+        unturned crop fails. `start`: the pick over earlier candidates to go on from (each candidate's
+        votes are seeded alike wherever it comes in the list)."""
+        best, best_score, votes, voting_ms, pnp_ms = start or _Pick()
         for pixels, vectors, turn in candidates:
             t1 = time.perf_counter()
             rng = np.random.default_rng([self.seed, inp.frame_id & 0xFFFFFFFF])
@@ -445,23 +456,30 @@ class PvnetEstimator(Estimator):
             out = self._pnp.estimate(replace(inp, keypoints=kp_rows, image=None))
             if out.status == Status.OK:
                 out.confidence = float(out.confidence * np.mean(inlier_ratio))
-                out.covariance = self._keypoint_covariance(inp, keypoints, spreads, out.T_CO)
+                out.covariance = None  # the winner's, once it is known (`_solve`)
             voting_ms += (t2 - t1) * 1e3
             pnp_ms += (time.perf_counter() - t2) * 1e3
             score = out.confidence / (self.turn_margin if turn else 1.0)
             if best is None or (out.status == Status.OK and (best.status != Status.OK or score > best_score)):
-                best, best_score = out, score
-        return best, voting_ms, pnp_ms
+                best, best_score, votes = out, score, (keypoints, spreads)
+        return _Pick(best, best_score, votes, voting_ms, pnp_ms)
 
-    def _solve(self, inp: EstimateInput, pick: tuple[EstimateOutput, float, float], inference_ms: float) -> EstimateOutput:
-        """The selected pose (`_select`), held to min_confidence and refined."""
-        best, voting_ms, pnp_ms = pick
+    def _solve(self, inp: EstimateInput, pick: _Pick, inference_ms: float) -> EstimateOutput:
+        """The selected pose (`_select`), held to min_confidence, refined, with its covariance: the refinement's
+        where it moved the pose, else the voted keypoints' through PnP."""
+        best = pick.best or EstimateOutput(Status.OBJECT_NOT_FOUND, message="the object mask is too small or empty")
         if best.status == Status.OK and best.confidence < self.min_confidence:
             best = EstimateOutput(Status.OBJECT_NOT_FOUND, message=f"no confident pose (best {best.confidence:.2f} < "
                                   f"min_confidence {self.min_confidence:g})")
-        stage_ms = {"inference": inference_ms, "voting": voting_ms, "pnp": pnp_ms}
-        if best.status == Status.OK and self.refiner is not None and not any(inp.camera.distortion):
-            best = self._refine(inp, best, stage_ms)
+        stage_ms = {"inference": inference_ms, "voting": pick.voting_ms, "pnp": pick.pnp_ms}
+        if best.status == Status.OK:
+            T_pnp = best.T_CO
+            if self.refiner is not None and not any(inp.camera.distortion):
+                best = self._refine(inp, best, stage_ms)
+            if best.status == Status.OK and best.covariance is None:  # PnP's pose, as it was
+                t0 = time.perf_counter()
+                best.covariance = self._keypoint_covariance(inp, *pick.votes, T_pnp)
+                stage_ms["pnp"] += (time.perf_counter() - t0) * 1e3
         best.stage_ms = stage_ms
         return best
 
