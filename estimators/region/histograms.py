@@ -36,8 +36,8 @@ class ColourHistograms:
         return cells
 
     def _normalised(self, cells: np.ndarray) -> np.ndarray:
-        h = np.bincount(cells.ravel(), minlength=self.bins**3).astype(float)
-        return h / max(h.sum(), 1.0)
+        cells = cells.ravel()
+        return np.bincount(cells, minlength=self.bins**3) / max(len(cells), 1)  # the counts' sum is the cells
 
     def update(self, fg_cells: np.ndarray, bg_cells: np.ndarray) -> None:
         """Blend in the pixels seen inside (fg) and outside (bg), as cells (`index`); the first call replaces."""
