@@ -13,13 +13,15 @@ Two figures:
    frames/s one core serves at that cost (callers and server share the process: an upper bound on
    the server's cost), latency p50/p99, and the share of answers under 5 px.
 
-The first request builds (or reads from the cache) the viewpoint model; it is not timed.
+The first request builds (or reads from the cache) the viewpoint model; it is not timed. The load average at
+the end is printed and stored with the figures: on a machine shared with other work CPU times rise.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import threading
 import time
 from pathlib import Path
@@ -180,9 +182,11 @@ def run(args: argparse.Namespace) -> int:
           f"of the process's CPU a frame, callers included), latency p50 "
           f"{served['latency_ms_p50']:.1f} ms, p99 {served['latency_ms_p99']:.1f} ms; "
           f"{100 * served['share_proj_5px']:.1f} % of {served['answers']} answers under {PROJ_PX:g} px")
+    load = list(os.getloadavg())  # CPU times rise on a machine shared with other work: the figures' context
+    print("load average at the end (1, 5, 15 min): " + ", ".join(f"{x:.1f}" for x in load))
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps({"in_process": local, "grpc": served,
+        args.out.write_text(json.dumps({"in_process": local, "grpc": served, "load_average": load,
                                         "provenance": of_args(args, command="flextrack bench region")}, indent=1))
         print(f"wrote {args.out}")
     return 0
