@@ -115,11 +115,13 @@ def sample_pixels(frame: CellImage, lines: Lines, offsets_px: np.ndarray) -> tup
     return cells.T, inside.T
 
 
-def _sample_rows(frame: CellImage, lines: Lines, offsets_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`sample_pixels` as (S, M): a row an offset, the lines along the rows."""
+def _sample_rows(frame: CellImage, lines: Lines, offsets_px: np.ndarray,
+                 steps: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """`sample_pixels` as (S, M): a row an offset, the lines along the rows (`steps`: `_steps(offsets_px)`)."""
     h, w = frame.cells.shape
     s = len(offsets_px)
-    xy = _steps(offsets_px) @ np.concatenate([lines.normals.T, lines.centers.T])  # (2S, M): x, then y
+    steps = _steps(offsets_px) if steps is None else steps
+    xy = steps @ np.concatenate([lines.normals.T, lines.centers.T])  # (2S, M): x, then y
     xy = np.floor(xy, out=xy).astype(np.int32)
     x, y = xy[:s], xy[s:]
     x -= frame.x0
@@ -159,9 +161,9 @@ def contour_distributions(frame: CellImage, logits: np.ndarray, lines: Lines, sc
     # each segment is `scale` pixels; its posterior multiplies its pixels' (log-odds summed), of at most
     # `pixels_per_segment` of them spread over it (a coarse segment's every pixel costs time, not accuracy)
     n = min(scale, cfg.pixels_per_segment)
-    offsets = _offsets(H, n, scale)
+    offsets, steps = _offsets(H, n, scale)
     # (S, M) and (2H, M) below: the lines run along the rows, so that every reduction adds whole rows
-    cells, inside = _sample_rows(frame, lines, offsets)
+    cells, inside = _sample_rows(frame, lines, offsets, steps)
     # pixels beyond the object's other side (inwards) or another part of it (outwards), and off the
     # image, carry nothing
     usable = inside & (offsets[:, None] > -lines.fg_px) & (offsets[:, None] < lines.bg_px)
@@ -223,13 +225,15 @@ def _run_sums(x: np.ndarray) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=32)
-def _offsets(half_segments: int, n: int, scale: int) -> np.ndarray:
-    """The sampled pixels' offsets along a line (px from its centre): `n` spread over each of the 2 H segments."""
+def _offsets(half_segments: int, n: int, scale: int) -> tuple[np.ndarray, np.ndarray]:
+    """The sampled pixels' offsets along a line (px from its centre): `n` spread over each of the 2 H segments; and
+    their `_steps`."""
     seg = np.arange(-half_segments, half_segments) + 0.5  # segment centres, segments
     sub = (np.arange(n) + 0.5) / n - 0.5
     offsets = ((seg[:, None] + sub[None, :]) * scale).ravel()
-    offsets.flags.writeable = False
-    return offsets
+    steps = _steps(offsets)
+    offsets.flags.writeable = steps.flags.writeable = False
+    return offsets, steps
 
 
 @functools.lru_cache(maxsize=8)
