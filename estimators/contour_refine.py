@@ -7,8 +7,9 @@ outline in the image is sharp to a fraction of a pixel, and its size fixes the d
 draws the silhouette (the mesh's triangles, four times oversampled), takes points along its
 contour with their outward normals, finds the edge along each normal (the largest change of colour
 within `search_px`, favouring the nearest), and solves the 6 pose parameters by robust least
-squares (scipy, Cauchy loss) on the points' distances to their edges along the normals, with the
-starting pose's projected keypoints as a weak prior so that a few false edges cannot drag it far. In the
+squares (Cauchy loss, `_robust_gauss_newton`) on the points' distances to their edges along the
+normals, with the starting pose's projected keypoints as a weak prior so that a few false edges
+cannot drag it far. In the
 last round, once the pose is near, the points left more than `fit_px` off their edge are dropped
 and the pose solved again: the false edges are mostly the object's own print just inside its
 outline, so they lean one way, and even down-weighted they pulled the pose too far (docs/pvnet.md).
