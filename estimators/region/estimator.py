@@ -195,8 +195,6 @@ class RegionEstimator(Estimator):
         """A translation (camera frame, m) moving the prior's silhouette, in the image plane, to where
         the colours agree with it best within +-2.5 sigma_px: the sum of (2 p_fg - 1) over the shifted
         silhouette, for every shift at once (a correlation)."""
-        import cv2
-
         reach = int(np.clip(2.5 * prior_px, 2, 60))
         poly = lines.centers - [frame.x0, frame.y0]
         lo = np.floor(poly.min(axis=0)).astype(int)
@@ -205,14 +203,14 @@ class RegionEstimator(Estimator):
             return np.zeros(3)
         template = np.zeros((size[1], size[0]), np.float32)
         cv2.fillPoly(template, [np.round((poly - lo) * 16).astype(np.int32)], 1.0, cv2.LINE_8, shift=4)
-        score = (2 * hist.posterior(frame.cells) - 1).astype(np.float32)
-        # the window of shifts: the template's top-left corner from lo - reach to lo + reach
-        h, w = score.shape
+        # the window of shifts: the template's top-left corner from lo - reach to lo + reach (off the region: no
+        # evidence either way)
         x0, y0 = lo - reach
-        pad = ((max(0, -y0), max(0, y0 + size[1] + 2 * reach - h)), (max(0, -x0), max(0, x0 + size[0] + 2 * reach - w)))
-        padded = np.pad(score, pad)  # off the region: no evidence either way
-        ys, xs = y0 + pad[0][0], x0 + pad[1][0]
-        window = padded[ys:ys + size[1] + 2 * reach, xs:xs + size[0] + 2 * reach]
+        window = np.zeros((size[1] + 2 * reach, size[0] + 2 * reach), np.float32)
+        h, w = frame.cells.shape
+        ya, yb, xa, xb = max(y0, 0), min(y0 + window.shape[0], h), max(x0, 0), min(x0 + window.shape[1], w)
+        if ya < yb and xa < xb:
+            window[ya - y0:yb - y0, xa - x0:xb - x0] = hist.scores(frame.cells[ya:yb, xa:xb])
         response = cv2.matchTemplate(window, template, cv2.TM_CCORR)
         dy, dx = np.unravel_index(int(np.argmax(response)), response.shape)
         shift_px = np.array([dx - reach, dy - reach], dtype=float)

@@ -87,6 +87,10 @@ class ColourHistograms:
         f, b = self.fg[cells], self.bg[cells]
         return (f + 1e-9) / (f + b + 2e-9)
 
+    def scores(self, cells: np.ndarray) -> np.ndarray:
+        """2 P(foreground | colour) - 1 for each cell index, float32 (the coarse search's evidence)."""
+        return (2 * self._posteriors() - 1).astype(np.float32).take(cells)
+
     def _posteriors(self) -> np.ndarray:
         """Every cell's posterior, by cell index."""
         return (self.fg + 1e-9) / (self.fg + self.bg + 2e-9)
