@@ -219,20 +219,20 @@ class PvnetEstimator(Estimator):
         self.search_model_path = _search_model(model_path, o.search_model, name)
         self.search_session = self.session if self.search_model_path == model_path else \
             _session(self.search_model_path, o)
-        meta = self.session.get_modelmeta().custom_metadata_map
-        self.input_scale = _model_scale(meta, "input_scale", name, model_path)  # frame -> network input (area)
-        self.output_stride = _model_scale(meta, "output_stride", name, model_path)  # network input -> output grid
         object_kp = objects.get(ids[0]).keypoints
-        for path, session in ((model_path, self.session), (self.search_model_path, self.search_session)):
+        scales = []  # (input_scale: frame -> network input (area), output_stride: network input -> output grid)
+        for path, session in [(model_path, self.session)] + (
+                [] if self.search_session is self.session else [(self.search_model_path, self.search_session)]):
             meta = session.get_modelmeta().custom_metadata_map
+            scales.append((_model_scale(meta, "input_scale", name, path), _model_scale(meta, "output_stride", name, path)))
             model_kp = np.asarray(json.loads(meta.get("keypoints_O", "[]")), dtype=float)
             if model_kp.shape != object_kp.shape or not np.allclose(model_kp, object_kp, atol=1e-4):
                 raise ValueError(f"estimator '{name}': {path.name} was trained for other keypoints than object "
                                  f"'{ids[0]}' has ({model_kp.shape[0]} vs {object_kp.shape[0]}, or different positions)")
-            if (_model_scale(meta, "input_scale", name, path), _model_scale(meta, "output_stride", name, path)) != \
-                    (self.input_scale, self.output_stride):
-                raise ValueError(f"estimator '{name}': {path.name} has another input scale or output stride than "
-                                 f"{model_path.name}")
+        if scales[-1] != scales[0]:
+            raise ValueError(f"estimator '{name}': {self.search_model_path.name} has another input scale or output "
+                             f"stride than {model_path.name}")
+        self.input_scale, self.output_stride = scales[0]
         self.model_path = model_path
         self.num_keypoints = len(object_kp)
         self.min_mask_px = int(o.min_mask_px)

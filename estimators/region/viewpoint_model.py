@@ -47,10 +47,16 @@ class ViewpointModel:
         n = self.points.shape[1]
         stacked = np.concatenate([self.points, self.normals], axis=1).transpose(0, 2, 1).astype(float, order="C")
         dists = np.stack([self.fg_dist, self.bg_dist], axis=1).astype(float, order="C")
-        directions = np.ascontiguousarray(np.asarray(self.directions, float).T).T
-        for name, value in (("directions", directions), ("stacked", stacked), ("dists", dists), ("points", stacked[:, :, :n].transpose(0, 2, 1)),
-                            ("normals", stacked[:, :, n:].transpose(0, 2, 1)), ("fg_dist", dists[:, 0]),
-                            ("bg_dist", dists[:, 1])):
+        views = {
+            "directions": np.ascontiguousarray(np.asarray(self.directions, float).T).T,
+            "stacked": stacked,
+            "dists": dists,
+            "points": stacked[:, :, :n].transpose(0, 2, 1),
+            "normals": stacked[:, :, n:].transpose(0, 2, 1),
+            "fg_dist": dists[:, 0],
+            "bg_dist": dists[:, 1],
+        }
+        for name, value in views.items():
             object.__setattr__(self, name, value)
 
     def closest_view(self, R_CO: np.ndarray, t_CO: np.ndarray) -> int:
