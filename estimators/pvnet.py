@@ -3,8 +3,10 @@
 Per frame: the image is halved (area averaging) and the network predicts the object mask and, per
 pixel, unit vectors towards the object's keypoints. The whole-frame searches run the model's int8
 copy where it has one (`search_model`; 3.4 times faster on a CPU core, and the search only has
-to find the object), the crop pass voted on the float model: int8 there moved the poses' ADD by
-1.7 mm on average and cost 2.5 % ADD on the held-out frames (docs/pvnet.md, Speed). The largest mask component locates the object
+to find the object), the upright crop pass voted on the float model: int8 there moved the poses'
+ADD by 1.7 mm on average and cost 2.5 % ADD on the held-out frames (docs/pvnet.md, Speed). The
+turned crops, a fallback on the few frames whose upright crop is unsure, run on the int8 copy too
+(`turns_on_search_model`). The largest mask component locates the object
 (objects that look small there are looked for again at full resolution); a second pass on a crop
 scaled so that the object's box is about `zoom_object_px` wide (the sizes it was mostly trained
 on, and more pixels on small far objects) gives the field that is voted on; that crop is also
@@ -69,7 +71,7 @@ class PvnetOptions:
     full_search_px: int = 640 * 480  # larger is reduced more), the far-object search's at most this many: any frame
     # shape then costs at most what a 640x480 one does, in CPU and memory (docs/pvnet.md)
     near_box_px: float = 50.0  # "small": a box under this many frame px
-    window_px: int = 256  # a small candidate is searched again in a window of this side around it (0: the whole frame)
+    window_px: int = 128  # a small candidate is searched again in a window of this side around it (0: the whole frame)
     candidates: int = 3  # mask components tried
     candidate_share: float = 0.25  # a component smaller than this share of the largest is not tried
     min_confidence: float = 0.1  # no pose under this confidence
@@ -77,6 +79,7 @@ class PvnetOptions:
     turn_margin: float = 1.5  # a turned candidate must beat the upright one by this factor
     turn_below: float = 0.5  # with rotations 4: the turned crops run only where the upright crops' best pose has a
     # confidence under this (or none); 1.01: always
+    turns_on_search_model: bool = True  # the turned crops run on the searches' network (`search_model`)
     hypotheses: int = 64  # RANSAC voting hypotheses per keypoint
     cos_threshold: float = 0.99  # a pixel votes for a hypothesis within this cosine
     ransac_px: float = 8.0  # PnP's RANSAC reprojection threshold
@@ -246,6 +249,7 @@ class PvnetEstimator(Estimator):
             raise ValueError(f"estimator '{name}': rotations must be 1 (the crop as it is) or 4 (also turned by 90, "
                              f"180 and 270 degrees), got {o.rotations}")
         self.rotations, self.turn_margin, self.turn_below = int(o.rotations), float(o.turn_margin), float(o.turn_below)
+        self.turns_on_search_model = bool(o.turns_on_search_model)
         if self.turn_margin < 1:
             raise ValueError(f"estimator '{name}': turn_margin must be >= 1, got {o.turn_margin}")
         self.voting = VotingConfig(hypotheses=int(o.hypotheses), cos_threshold=float(o.cos_threshold))
@@ -408,7 +412,8 @@ class PvnetEstimator(Estimator):
                 pick.best is None or pick.best.status != Status.OK or pick.best.confidence < self.turn_below)]
             if redo:
                 turned = self._crop_fields([images[i] for i in redo], [halves[i] for i in redo], factor,
-                                           [found[i] for i in redo], (1, 2, 3), fallback=False)
+                                           [found[i] for i in redo], (1, 2, 3), fallback=False,
+                                           search=self.turns_on_search_model)
                 t1 = time.perf_counter()
                 for i, more in zip(redo, turned):
                     if more:  # the upright crops' pick goes on over the turned ones
@@ -418,7 +423,7 @@ class PvnetEstimator(Estimator):
         return [self._solve(inp, pick, inference_ms) for inp, pick in zip(inputs, picks)]
 
     def _crop_fields(self, images: list, halves: list, factor: int, found: list[list], turns: tuple[int, ...],
-                     fallback: bool) -> list[list]:
+                     fallback: bool, search: bool = False) -> list[list]:
         """Per frame, the fields of the crop pass: one per candidate and turn of its crop, mapped back to
         frame pixels, with the turn; with `fallback`, a candidate whose crop shows no mask in these turns
         keeps its whole-frame field."""
@@ -426,7 +431,7 @@ class PvnetEstimator(Estimator):
         crops = [self._zoom_crop(images[i], halves[i], factor, found[i][j][2]) for i, j in pairs]
         turns = [(p, t) for p in range(len(pairs)) for t in turns]
         zoomed: list[list] = [[] for _ in pairs]
-        for (p, t), out in zip(turns, self._run([np.rot90(crops[p][0], t) for p, t in turns])):
+        for (p, t), out in zip(turns, self._run([np.rot90(crops[p][0], t) for p, t in turns], search=search)):
             masks = _components(out[0] > 0, 1, self.min_mask_px)
             if masks:
                 rows, cols, vec = self._field(out, masks[0])

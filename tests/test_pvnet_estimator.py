@@ -190,6 +190,13 @@ def test_turned_crops_find_an_object_seen_upside_down(registry, rendered):
     outs = {r: PvnetEstimator(registry, SHIPPED, rotations=r).estimate(_input(upside_down)) for r in (1, 4)}
     assert outs[4].status == Status.OK and metrics.proj_px(outs[4].T_CO, T_rolled, CAMERA, verts) < 5.0
     assert outs[1].status != Status.OK or metrics.proj_px(outs[1].T_CO, T_rolled, CAMERA, verts) > 5.0
+    for on_search in (True, False):  # the turns, the last pass, on the searches' int8 copy unless told otherwise
+        est, passes = PvnetEstimator(registry, SHIPPED, turns_on_search_model=on_search), []
+        run = est._run
+        est._run = lambda images, search=False, passes=passes, run=run: \
+            passes.append((len(images) % 3, images[0].shape[:2], search)) or run(images, search)
+        est.estimate(_input(upside_down))
+        assert passes[-1] == (0, (128, 128), on_search) and passes[-2][2] is False  # the upright crop: the model
     with pytest.raises(ValueError, match="rotations"):
         PvnetEstimator(registry, SHIPPED, rotations=3)
     with pytest.raises(ValueError, match="window_px"):
