@@ -407,6 +407,7 @@ class PvnetEstimator(Estimator):
         t1 = time.perf_counter()
         picks = [self._select(inp, cands) for inp, cands in zip(inputs, fields)]
         selecting = time.perf_counter() - t1
+        upright = list(picks)
         if self.rotations == 4:
             redo = [i for i, pick in enumerate(picks) if found[i] and (
                 pick.best is None or pick.best.status != Status.OK or pick.best.confidence < self.turn_below)]
@@ -420,7 +421,18 @@ class PvnetEstimator(Estimator):
                         picks[i] = self._select(inputs[i], more, picks[i])
                 selecting += time.perf_counter() - t1
         inference_ms = (time.perf_counter() - t0 - selecting) * 1e3 / n
-        return [self._solve(inp, pick, inference_ms) for inp, pick in zip(inputs, picks)]
+        return [self._solve_or_upright(inp, pick, first, inference_ms) for inp, pick, first in zip(inputs, picks, upright)]
+
+    def _solve_or_upright(self, inp: EstimateInput, pick: _Pick, upright: _Pick, inference_ms: float) -> EstimateOutput:
+        """`_solve`, and where a turned crop's pose won but its outline does not fit the image, the upright crops'
+        best solved instead: a network shown a turned object can see a confident wrong one."""
+        out = self._solve(inp, pick, inference_ms)
+        if out.status == Status.OK or pick.best is upright.best or upright.best is None \
+                or upright.best.status != Status.OK:
+            return out
+        again = self._solve(inp, upright, inference_ms)
+        again.stage_ms["refine"] = again.stage_ms.get("refine", 0.0) + out.stage_ms.get("refine", 0.0)
+        return again
 
     def _crop_fields(self, images: list, halves: list, factor: int, found: list[list], turns: tuple[int, ...],
                      fallback: bool, search: bool = False) -> list[list]:

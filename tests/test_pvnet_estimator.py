@@ -338,6 +338,33 @@ def test_any_frame_shape_runs_the_network_on_inputs_no_larger_than_a_640x480_fra
     assert all(h * w <= 640 * 480 for h, w in shapes) and (256, 256) in shapes
 
 
+def test_a_turned_crops_pose_the_outline_refuses_gives_way_to_the_upright_crops(registry, rendered):
+    """A turned crop's pose wins on confidence; where its outline does not fit the image, the upright crops'
+    best is solved instead (a network shown a turned object can see a confident wrong one). A turned pose
+    that fits stays, and an upright pick that won is solved once."""
+    from estimators.base import EstimateOutput
+    from estimators.pvnet import _Pick
+
+    rgb, T_gt = rendered[0]
+    est = PvnetEstimator(registry, SHIPPED)
+    near, turned = T_gt.copy(), T_gt.copy()
+    near[:3, 3] *= 1.02
+    turned[:3, :3] = so3.exp(np.array([0.0, 0.0, np.pi])) @ T_gt[:3, :3]  # upside down, in place
+    verts = registry.get("default").vertices
+
+    def pick(T, confidence):
+        return _Pick(EstimateOutput(Status.OK, T_CO=T.copy(), confidence=confidence), confidence)
+
+    assert est._solve(_input(rgb), pick(turned, 0.9), 0.0).status == Status.OBJECT_NOT_FOUND
+    out = est._solve_or_upright(_input(rgb), pick(turned, 0.9), pick(near, 0.6), 0.0)
+    assert out.status == Status.OK and metrics.proj_px(out.T_CO, T_gt, CAMERA, verts) < 1.0
+    assert out.stage_ms["refine"] > 0
+    out = est._solve_or_upright(_input(rgb), pick(near, 0.9), pick(turned, 0.6), 0.0)
+    assert out.status == Status.OK and metrics.proj_px(out.T_CO, T_gt, CAMERA, verts) < 1.0
+    upright = pick(turned, 0.9)
+    assert est._solve_or_upright(_input(rgb), upright, upright, 0.0).status == Status.OBJECT_NOT_FOUND
+
+
 def test_the_searches_run_the_int8_copy_beside_the_model_and_the_crop_pass_the_model(registry, rendered, tmp_path):
     """search_model "auto": MODEL_int8.onnx beside the model where there is one (the shipped one is), else the
     model; "same": the model; a path that is not a file: a clear error. The crop pass is the float model's."""
