@@ -71,7 +71,7 @@ class PvnetOptions:
     full_search_px: int = 640 * 480  # larger is reduced more), the far-object search's at most this many: any frame
     # shape then costs at most what a 640x480 one does, in CPU and memory (docs/pvnet.md)
     near_box_px: float = 50.0  # "small": a box under this many frame px
-    window_px: int = 128  # a small candidate is searched again in a window of this side around it (0: the whole frame)
+    window_px: int = 160  # a small candidate is searched again in a window of this side around it (0: the whole frame)
     candidates: int = 3  # mask components tried
     candidate_share: float = 0.25  # a component smaller than this share of the largest is not tried
     min_confidence: float = 0.1  # no pose under this confidence
