@@ -156,6 +156,7 @@ class ContourRefiner:
         self.vertices_T = np.ascontiguousarray(self.vertices.T)
         self.keypoints = np.asarray(keypoints_m, dtype=float)
         self.config = config
+        self.prior_w = np.sqrt(config.prior_weight) * np.ones(len(self.keypoints))  # each keypoint prior row's weight
         # The outline of a projected mesh is made of edges between a face turned towards the camera
         # and one turned away, and of open edges; only the faces along those need drawing (holes
         # inside do not change the outer contour), a few thousand of the object's faces at most.
@@ -254,8 +255,7 @@ class ContourRefiner:
         """The pose (R, t) moved so that the contour points land on their edges along their normals,
         the keypoints held near their prior projections. Residual rows: one per contour point, then
         x and y per keypoint. `trim`: solved again without the points left over `fit_px` off."""
-        w = np.sqrt(self.config.prior_weight) * np.ones(len(self.keypoints))
-        rows = _Rows(K, np.vstack([points_O, self.keypoints]), normals, targets, w, prior)
+        rows = _Rows(K, np.vstack([points_O, self.keypoints]), normals, targets, self.prior_w, prior)
         R1, t1 = _robust_gauss_newton(rows, R, t, self.config.robust_px)
         m = len(points_O)
         if trim:  # the one-sided false edges out, the same start solved again

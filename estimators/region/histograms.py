@@ -84,8 +84,7 @@ class ColourHistograms:
         """P(foreground | colour) for each cell index, in (0, 1)."""
         if np.size(cells) > self.bins**3:  # many pixels: every cell's posterior once, then one lookup a pixel
             return self._posteriors().take(cells)
-        f, b = self.fg[cells], self.bg[cells]
-        return (f + 1e-9) / (f + b + 2e-9)
+        return _posterior(self.fg[cells], self.bg[cells])
 
     def scores(self, cells: np.ndarray) -> np.ndarray:
         """2 P(foreground | colour) - 1 for each cell index, float32 (the coarse search's evidence)."""
@@ -93,4 +92,9 @@ class ColourHistograms:
 
     def _posteriors(self) -> np.ndarray:
         """Every cell's posterior, by cell index."""
-        return (self.fg + 1e-9) / (self.fg + self.bg + 2e-9)
+        return _posterior(self.fg, self.bg)
+
+
+def _posterior(fg: np.ndarray, bg: np.ndarray) -> np.ndarray:
+    """P(foreground | colour) from the two histograms' values at the colour's cells, in (0, 1)."""
+    return (fg + 1e-9) / (fg + bg + 2e-9)
