@@ -41,11 +41,13 @@ def _intersect(p1, v1, p2, v2):
     return p1 + s[..., None] * v1
 
 
-def _inliers(h: np.ndarray, pixels: np.ndarray, vectors: np.ndarray, cos_threshold: float) -> np.ndarray:
-    """(K, H, N) bool: pixel n's vector for keypoint k points at hypothesis h within the threshold."""
-    dx = h[:, :, None, 0] - pixels[None, None, :, 0]  # (K, H, N)
-    dy = h[:, :, None, 1] - pixels[None, None, :, 1]
-    dot = dx * vectors.T[0][:, None, :] + dy * vectors.T[1][:, None, :]
+def _inliers(h: np.ndarray, xy: np.ndarray, v: np.ndarray, cos_threshold: float) -> np.ndarray:
+    """(K, H, N) bool: pixel n's vector for keypoint k points at hypothesis h (K, H, 2) within the threshold;
+    the pixels' coordinates xy (2, N) and vectors v (2, K, N) as contiguous rows (strided operands had
+    doubled its cost)."""
+    dx = h[:, :, 0, None] - xy[0]  # (K, H, N)
+    dy = h[:, :, 1, None] - xy[1]
+    dot = dx * v[0][:, None, :] + dy * v[1][:, None, :]
     # (dot > 0) & (dot^2 > cos^2 |d|^2), in place: the (K, H, N) temporaries were most of its time
     dx *= dx
     dy *= dy
@@ -88,8 +90,10 @@ def vote_with_spread(pixels: np.ndarray, vectors: np.ndarray, rng: np.random.Gen
     kk = np.arange(k)[:, None]
     h = _intersect(pixels[i], vectors[i, kk], pixels[j], vectors[j, kk])  # (K, H, 2)
     h = np.where(np.isfinite(h), h, 1e9)  # parallel pairs: far away, no support
-    score = _inliers(h.astype(np.float32), pixels[sub].astype(np.float32), vectors[sub].astype(np.float32),
+    score = _inliers(h.astype(np.float32), np.ascontiguousarray(pixels[sub].T, dtype=np.float32),
+                     np.ascontiguousarray(vectors[sub].transpose(2, 1, 0), dtype=np.float32),
                      config.cos_threshold).sum(axis=2)
     kp = h[np.arange(k), np.argmax(score, axis=1)]
-    support = _inliers(kp[:, None, :], pixels, vectors, config.cos_threshold)[:, 0]  # (K, N)
+    support = _inliers(kp[:, None, :], np.ascontiguousarray(pixels.T), np.ascontiguousarray(vectors.transpose(2, 1, 0)),
+                       config.cos_threshold)[:, 0]  # (K, N)
     return kp, support.mean(axis=1), _spread(h, score, config.spread_share)
