@@ -41,22 +41,26 @@ def _intersect(p1, v1, p2, v2):
     return p1 + s[..., None] * v1
 
 
-def _inliers(h: np.ndarray, xy: np.ndarray, v: np.ndarray, cos_threshold: float) -> np.ndarray:
-    """(K, H, N) bool: pixel n's vector for keypoint k points at hypothesis h (K, H, 2) within the threshold;
-    the pixels' coordinates xy (2, N) and vectors v (2, K, N) as contiguous rows (strided operands had
-    doubled its cost)."""
-    dx = h[:, :, 0, None] - xy[0]  # (K, H, N)
-    dy = h[:, :, 1, None] - xy[1]
-    dot = dx * v[0][:, None, :] + dy * v[1][:, None, :]
-    # (dot > 0) & (dot^2 > cos^2 |d|^2), in place: the (K, H, N) temporaries were most of its time
-    dx *= dx
-    dy *= dy
-    dx += dy
-    dx *= cos_threshold * cos_threshold
-    inliers = dot > 0
-    dot *= dot
-    inliers &= dot > dx
-    return inliers
+def _votes(h: np.ndarray, xy: np.ndarray, v: np.ndarray, cos_threshold: float) -> np.ndarray:
+    """(K, H) counts of the pixels whose vector for keypoint k points at hypothesis h (K, H, 2) within the
+    threshold; the pixels' coordinates xy (2, N) and vectors v (2, K, N) as contiguous rows (strided operands
+    had doubled its cost). One keypoint at a time: the (K, H, N) arrays of all at once (MBs) went back to the
+    system at each call and cost their page faults again at the next, most of the voting's time."""
+    votes = np.empty(h.shape[:2], dtype=np.int64)
+    for k in range(len(h)):
+        dx = h[k, :, 0, None] - xy[0]  # (H, N)
+        dy = h[k, :, 1, None] - xy[1]
+        dot = dx * v[0, k] + dy * v[1, k]
+        # (dot > 0) & (dot^2 > cos^2 |d|^2), in place
+        dx *= dx
+        dy *= dy
+        dx += dy
+        dx *= cos_threshold * cos_threshold
+        inliers = dot > 0
+        dot *= dot
+        inliers &= dot > dx
+        votes[k] = inliers.sum(axis=1)
+    return votes
 
 
 def vote(pixels: np.ndarray, vectors: np.ndarray, rng: np.random.Generator,
@@ -90,10 +94,9 @@ def vote_with_spread(pixels: np.ndarray, vectors: np.ndarray, rng: np.random.Gen
     kk = np.arange(k)[:, None]
     h = _intersect(pixels[i], vectors[i, kk], pixels[j], vectors[j, kk])  # (K, H, 2)
     h = np.where(np.isfinite(h), h, 1e9)  # parallel pairs: far away, no support
-    score = _inliers(h.astype(np.float32), np.ascontiguousarray(pixels[sub].T, dtype=np.float32),
-                     np.ascontiguousarray(vectors[sub].transpose(2, 1, 0), dtype=np.float32),
-                     config.cos_threshold).sum(axis=2)
+    score = _votes(h.astype(np.float32), np.ascontiguousarray(pixels[sub].T, dtype=np.float32),
+                   np.ascontiguousarray(vectors[sub].transpose(2, 1, 0), dtype=np.float32), config.cos_threshold)
     kp = h[np.arange(k), np.argmax(score, axis=1)]
-    support = _inliers(kp[:, None, :], np.ascontiguousarray(pixels.T), np.ascontiguousarray(vectors.transpose(2, 1, 0)),
-                       config.cos_threshold)[:, 0]  # (K, N)
-    return kp, support.mean(axis=1), _spread(h, score, config.spread_share)
+    support = _votes(kp[:, None, :], np.ascontiguousarray(pixels.T), np.ascontiguousarray(vectors.transpose(2, 1, 0)),
+                     config.cos_threshold)[:, 0]  # (K,) of all n pixels
+    return kp, support / n, _spread(h, score, config.spread_share)
