@@ -92,7 +92,8 @@ class _Rows:
         a[:m], a[m::2, 0], a[m + 1::2, 1] = normals, w, w
         goal = np.concatenate([targets, np.repeat(prior, 2, axis=0)])
         self.points = points[idx]
-        self.af = a * np.array([K[0, 0], K[1, 1]])  # (u, v) = (fx, fy) * (x, y) / z + (cx, cy)
+        # (u, v) = (fx, fy) * (x, y) / z + (cx, cy): a . (u, v) = a_u fx x / z + a_v fy y / z + a . (cx, cy)
+        self.afx, self.afy = np.ascontiguousarray(a[:, 0] * K[0, 0]), np.ascontiguousarray(a[:, 1] * K[1, 1])
         self.b = _dot2(a, goal - K[:2, 2])
 
     def __call__(self, R, t) -> tuple[np.ndarray, np.ndarray]:
@@ -105,14 +106,14 @@ class _Rows:
         # dP / d(rotation on the left) = -[q]x, so a row is [q x g, g]
         J = np.empty((len(q), 6))
         g0, g1 = J[:, 3], J[:, 4]
-        np.multiply(self.af[:, 0], iz, out=g0)
-        np.multiply(self.af[:, 1], iz, out=g1)
+        np.multiply(self.afx, iz, out=g0)
+        np.multiply(self.afy, iz, out=g1)
         g2 = J[:, 5]
         np.negative(g0 * nx + g1 * ny, out=g2)
-        r = self.af[:, 0] * nx + self.af[:, 1] * ny - self.b
-        J[:, 0] = q[:, 1] * g2 - q[:, 2] * g1
-        J[:, 1] = q[:, 2] * g0 - q[:, 0] * g2
-        J[:, 2] = q[:, 0] * g1 - q[:, 1] * g0
+        r = self.afx * nx + self.afy * ny - self.b
+        np.subtract(q[:, 1] * g2, q[:, 2] * g1, out=J[:, 0])
+        np.subtract(q[:, 2] * g0, q[:, 0] * g2, out=J[:, 1])
+        np.subtract(q[:, 0] * g1, q[:, 1] * g0, out=J[:, 2])
         return r, J
 
 
@@ -126,29 +127,28 @@ def _robust_gauss_newton(rows: _Rows, R, t, scale: float, iterations: int = 100)
     Returns the pose and the rows' residuals and Jacobian there."""
     r, J = rows(R, t)
     zz = (r / scale) ** 2
-    c, lam = float(np.sum(np.log1p(zz))), 1.0  # damped at first (the step about the gradient's), as scipy's first
+    c, lam = float(np.log1p(zz).sum()), 1.0  # damped at first (the step about the gradient's), as scipy's first
     # trust region: a full Gauss-Newton step from a start some px off jumped into another minimum of the robust cost
-    diagonal = np.diag_indices(6)
     for _ in range(iterations):
         rho1 = 1.0 / (1.0 + zz)
-        js = np.sqrt(np.maximum(rho1 - 2.0 * zz * rho1 ** 2, 1e-12))  # rho' + 2 rho'' r^2, floored
+        js = np.sqrt(np.maximum(rho1 - 2.0 * zz * (rho1 * rho1), 1e-12))  # rho' + 2 rho'' r^2, floored
         Js = J * js[:, None]
         A, g = Js.T @ Js, Js.T @ (r * rho1 / js)
-        damping = A[diagonal] + 1e-12
+        damping = A.ravel()[::7] + 1e-12  # the diagonal (a view's stride, not fancy indexing: numpy calls are the cost)
         while True:
             D = A.copy()
-            D[diagonal] += lam * damping
+            D.ravel()[::7] += lam * damping
             dx = -lapack.dgesv(D, g)[2]  # np.linalg.solve's LU, the same answer, without its checks' overhead
             R2, t2 = cv2.Rodrigues(dx[:3])[0] @ R, t + dx[3:]
             r2, J2 = rows(R2, t2)
             zz2 = (r2 / scale) ** 2
-            c2 = float(np.sum(np.log1p(zz2)))
+            c2 = float(np.log1p(zz2).sum())
             if c2 <= c or lam > 1e8:
                 break
             lam *= 10.0
         if c2 > c:
             break
-        converged = c - c2 <= 1e-8 * c or np.max(np.abs(dx)) < 1e-10
+        converged = c - c2 <= 1e-8 * c or abs(dx).max() < 1e-10
         R, t, r, J, zz, c, lam = R2, t2, r2, J2, zz2, c2, max(lam / 10.0, 1e-9)
         if converged:
             break
