@@ -169,16 +169,25 @@ class ContourRefiner:
         self.keypoints = np.asarray(keypoints_m, dtype=float)
         self.config = config
         self.prior_w = np.sqrt(config.prior_weight) * np.ones(len(self.keypoints))  # each keypoint prior row's weight
+        # the edge search's samples along each normal (px), the boundaries between the w = 2 step_px samples inside
+        # and outside that it measures the colour change at, and their weights (nearer edges favoured, none beyond
+        # search_px)
+        self.steps = np.arange(-config.search_px - config.step_px, config.search_px + config.step_px + 0.01, 0.5)
+        self.boundaries = self.steps[2 * config.step_px:len(self.steps) - 2 * config.step_px + 1] - 0.25
+        self.nearness = np.where(np.abs(self.boundaries) > config.search_px, 0.0,
+                                 np.exp(-0.5 * (self.boundaries / config.nearness_px) ** 2))
         # The outline of a projected mesh is made of edges between a face turned towards the camera
         # and one turned away, and of open edges; only the faces along those need drawing (holes
         # inside do not change the outer contour), a few thousand of the object's faces at most.
         self.adjacent = [np.ascontiguousarray(side) for side in mesh.face_adjacency.T]  # the two faces of each edge
         self.face_normals = np.cross(self.vertices[self.faces[:, 1]] - self.vertices[self.faces[:, 0]],
                                      self.vertices[self.faces[:, 2]] - self.vertices[self.faces[:, 0]])
-        # a face turns towards a camera at c (object frame) where n . (v0 - c) < 0: n . v0 once here
-        self.face_offsets = np.einsum("ij,ij->i", self.face_normals, self.vertices[self.faces[:, 0]])
+        # a face turns towards a camera at c = -R^T t (object frame) where n . (v0 - c) < 0, n . R^T t < -n . v0:
+        # -n . v0 once here
+        self.face_offsets = -np.einsum("ij,ij->i", self.face_normals, self.vertices[self.faces[:, 0]])
         uses = np.bincount(mesh.edges_unique_inverse, minlength=len(mesh.edges_unique))
-        self.open_faces = np.unique(np.nonzero(uses[mesh.faces_unique_edges] == 1)[0])
+        self.open_faces = np.zeros(len(self.faces), bool)  # the faces along open edges: always drawn
+        self.open_faces[uses[mesh.faces_unique_edges].min(axis=1) == 1] = True
 
     def _contour(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, shape: tuple[int, int]):
         """Contour points (M, 2) in image px, their outward unit normals and their 3D points (object frame)."""
@@ -193,15 +202,15 @@ class ContourRefiner:
         uv = np.column_stack([u, v])
         size = ((hi - lo) * OVERSAMPLE).astype(int)
         mask = np.zeros((size[1], size[0]), np.uint8)
-        facing = self.face_offsets + self.face_normals @ (R.T @ t) < 0  # n . (v0 - c), c = -R^T t
+        facing = self.face_normals @ (R.T @ t) < self.face_offsets
         turn = facing[self.adjacent[0]] != facing[self.adjacent[1]]
-        drawn = np.zeros(len(self.faces), bool)  # the faces along turning edges and the open ones, in order
+        drawn = self.open_faces.copy()  # the faces along turning edges and the open ones, in order
         drawn[self.adjacent[0][turn]] = True
         drawn[self.adjacent[1][turn]] = True
-        drawn[self.open_faces] = True
         rim = np.flatnonzero(drawn)
-        # coordinates in 1/16 raster px (shift=4); raster px centre (i + 0.5) / OVERSAMPLE image px
-        tri = np.round(((uv[self.faces[rim]] - lo) * OVERSAMPLE - 0.5) * 16).astype(np.int32)
+        # coordinates in 1/16 raster px (shift=4), ((u - lo) OVERSAMPLE - 0.5) 16; raster px centre (i + 0.5) /
+        # OVERSAMPLE image px
+        tri = np.rint((uv[self.faces[rim]] - lo) * (16 * OVERSAMPLE) - 8).astype(np.int32)
         fill = cv2.fillConvexPoly  # (mask, points, colour, cv2.LINE_8, shift 4), positional: a third faster a call
         for triangle in tri:  # one by one: fillPoly on many polygons fills their overlaps even-odd
             fill(mask, triangle, 1, 8, 4)
@@ -220,7 +229,8 @@ class ContourRefiner:
         normal /= np.maximum(np.sqrt(_dot2(normal, normal)), 1e-9)[:, None]
         c = c[pick]
         probe = np.round(c + 2 * normal).astype(int)
-        inside = mask[np.clip(probe[:, 1], 0, size[1] - 1), np.clip(probe[:, 0], 0, size[0] - 1)] > 0
+        inside = mask[np.minimum(np.maximum(probe[:, 1], 0), size[1] - 1),
+                      np.minimum(np.maximum(probe[:, 0], 0), size[0] - 1)] > 0
         normal[inside] *= -1
         pts = (c + 0.5) / OVERSAMPLE + lo
         # 3D point under each contour point: its ray at the depth of the nearest projected vertex
@@ -231,33 +241,28 @@ class ContourRefiner:
 
     def _edges(self, image: np.ndarray, pts: np.ndarray, normals: np.ndarray):
         """Signed offsets along the normals to the chosen edge, and which points found one."""
-        cfg = self.config
-        steps = np.arange(-cfg.search_px - cfg.step_px, cfg.search_px + cfg.step_px + 0.01, 0.5)
-        profile = _sample(image, (pts[:, None, :] + steps[None, :, None] * normals[:, None, :]).astype(np.float32))
+        cfg, s = self.config, self.boundaries
+        profile = _sample(image, (pts[:, None, :] + self.steps[None, :, None] * normals[:, None, :]).astype(np.float32))
         # a step between the means of the w px inside and the w px outside of each position: texture on
         # one side (the object's print) adds noise to it but does not move its peak, as a derivative's
-        w = 2 * self.config.step_px
+        w = 2 * cfg.step_px
         csum = np.zeros((len(pts), profile.shape[1] + 1, profile.shape[2]), np.float32)
-        for i in range(profile.shape[1]):  # np.cumsum(profile, axis=1), column by column: numpy's reductions over
-            np.add(csum[:, i], profile[:, i], out=csum[:, i + 1])  # short axes cost ~20 ns an element
+        np.cumsum(profile, axis=1, out=csum[:, 1:])
         inner = (csum[:, w:-w] - csum[:, :-2 * w]) / w
         outer = (csum[:, 2 * w:] - csum[:, w:-w]) / w
         d = outer - inner
-        change = np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2]) / self.config.step_px
+        change = np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2]) / cfg.step_px
         # the colour change per px, at the boundary between
-        s = steps[w:len(steps) - w + 1] - 0.25
-        score = change * np.exp(-0.5 * (s / cfg.nearness_px) ** 2)
-        score[:, np.abs(s) > cfg.search_px] = 0.0
-        best = np.argmax(score, axis=1)
+        best = np.argmax(change * self.nearness, axis=1)
         rows = np.arange(len(pts))
         found = change[rows, best] >= cfg.min_edge
         # sub-step peak of the colour change (parabola through the best and its neighbours)
-        b = np.clip(best, 1, len(s) - 2)
+        b = np.minimum(np.maximum(best, 1), len(s) - 2)
         y0, y1, y2 = change[rows, b - 1], change[rows, b], change[rows, b + 1]
         denom = y0 - 2 * y1 + y2
         curved = np.abs(denom) > 1e-9
         frac = np.where(curved, 0.5 * (y0 - y2) / np.where(curved, denom, 1.0), 0.0)
-        offset = s[b] + 0.5 * np.clip(frac, -1.0, 1.0)
+        offset = s[b] + 0.5 * np.minimum(np.maximum(frac, -1.0), 1.0)
         return offset, found
 
     def _fit(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, points_O: np.ndarray, normals: np.ndarray,
