@@ -272,12 +272,11 @@ class ContourRefiner:
         x and y per keypoint. `trim`: solved again without the points left over `fit_px` off."""
         rows = _Rows(K, np.vstack([points_O, self.keypoints]), normals, targets, self.prior_w, prior)
         R1, t1, r, J = _robust_gauss_newton(rows, R, t, self.config.robust_px)
-        if trim:  # the one-sided false edges out, solved again from the first solution: the same minimum
-            # (to under 1 um on the bench's frames) in a third of the iterations the starting pose took
+        if trim:  # the one-sided false edges out, the same start solved again
             along = _dot2(_project(K, R1, t1, points_O) - targets, normals)
             near = np.abs(along) < self.config.fit_px
             if near.sum() >= self.config.min_points:
-                return self._fit(K, R1, t1, points_O[near], normals[near], targets[near], prior, trim=False)
+                return self._fit(K, R, t, points_O[near], normals[near], targets[near], prior, trim=False)
         # what the pose covariance is made of: the Jacobian at the solution (w.r.t. a left perturbation of
         # it in the camera frame, the wire convention) and the residuals, contour rows first
         return R1, t1, {"J": J, "r": r, "m": len(points_O)}
