@@ -311,6 +311,25 @@ def test_the_edge_search_samples_as_the_whole_image_would(rendered):
         assert np.array_equal(_sample(rgb, xy), expected), (lo, hi)
 
 
+def test_the_contour_points_nearest_vertices_are_scipys():
+    """The refinement's nearest-vertex search (FLANN's k-d tree in float32, its two nearest re-ranked in
+    float64) finds the vertices scipy's cKDTree finds, where float32 alone cannot tell them apart: each
+    query between two vertices 0.3 px away whose distances differ by 2e-6 px (float32 picked the farther
+    one of a quarter of such pairs)."""
+    from scipy.spatial import cKDTree
+
+    from estimators.contour_refine import _nearest
+
+    rng = np.random.default_rng(11)
+    queries = rng.uniform(300, 460, (300, 2))
+    angle = rng.uniform(0, 2 * np.pi, 300)
+    away = np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    gap = rng.choice([-2e-6, 2e-6], (300, 1))
+    points = np.vstack([rng.uniform(300, 460, (8000, 2)), queries + 0.3 * away, queries - (0.3 + gap) * away])
+    origin = np.floor(points.min(axis=0)) - 2
+    assert np.array_equal(_nearest(points, queries, origin), cKDTree(points).query(queries)[1])
+
+
 @pytest.mark.skipif(not SHIPPED.is_file(), reason=f"no shipped model at {SHIPPED}")
 def test_refinement_can_be_turned_off_and_its_outline_check_refuses(registry, rendered):
     out = PvnetEstimator(registry, SHIPPED, refine=False).estimate(_input(rendered[0][0]))
