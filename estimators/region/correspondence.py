@@ -122,6 +122,7 @@ def _sample_rows(frame: CellImage, lines: Lines, offsets_px: np.ndarray,
     s = len(offsets_px)
     steps = _steps(offsets_px) if steps is None else steps
     xy = steps @ np.concatenate([lines.normals.T, lines.centers.T])  # (2S, M): x, then y
+    xy += 0.5  # the nearest pixel: OpenCV's pixel centres sit at integers (flooring alone read 0.5 px up-left)
     xy = np.floor(xy, out=xy).astype(np.int32)
     x, y = xy[:s], xy[s:]
     x -= frame.x0
