@@ -26,7 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("flextrack.benchmarks.cli", "benchmarks that print figures: service throughput and capacity, the tracker core, estimators"),
     "loadtest": ("flextrack.loadtest.cli", "load-test a running service with many devices (Track streams or Estimate calls)"),
     "report": ("flextrack.report", "regenerate the README's and docs' result sections from docs/results/"),
-    "evaluate": ("flextrack.evaluation.cli", "evaluate estimators: prior (score with priors around the ground truth), nees (covariance calibration)"),
+    "evaluate": ("flextrack.evaluation.cli", "evaluate estimators: prior (score with priors around the ground truth), nees (covariance calibration), gt-offset (a dataset's truth against its images)"),
 }
 
 

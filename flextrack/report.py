@@ -501,8 +501,38 @@ def render_region_lmo(folder: Path) -> str:
                for name, doc in docs.items()]
     return "\n".join([*lines, "", (f"Per object, {first}, instances at least 30 % visible (NEES: chi-square(6), "
                       "mean 6, median 5.35; against the nearest symmetric pose):"), "", *objects, "",
-                      f"Per visibility band, {first}, every instance:", "", *bands, "", "Sources:", *sources,
-                      f"Files: `{RESULTS_DIR.as_posix()}/{folder.name}/`."])
+                      f"Per visibility band, {first}, every instance:", "", *bands, "", *_centre_lean(answers),
+                      "Sources:", *sources, f"Files: `{RESULTS_DIR.as_posix()}/{folder.name}/`."])
+
+
+def _centre_lean(answers: list[dict]) -> list[str]:
+    """Where the answers under 5 px put the object's centre in the image, against the truth, on average (a sentence
+    and a blank line; none for a run that did not record it)."""
+    offsets = np.array([a["centre_offset_px"] for a in answers if "centre_offset_px" in a and _under_5(a)])
+    if len(offsets) < 2:
+        return []
+    mean, se = offsets.mean(axis=0), offsets.std(axis=0, ddof=1) / np.sqrt(len(offsets))
+    return [(f"The {len(offsets)} answers under 5 px put the object's centre, on average, {mean[0]:+.2f} +- {se[0]:.2f} px "
+            f"right and {mean[1]:+.2f} +- {se[1]:.2f} px down of the truth's projection (mean +- its standard error)."), ""]
+
+
+@section("lmo_gt_offset")
+def render_lmo_gt_offset(folder: Path) -> str:
+    """`flextrack evaluate gt-offset`: where the meshes' vertex colours put the objects in the frames, against the
+    ground truth's projection."""
+    data = json.loads((folder / "lmo_gt_offset.json").read_text())
+    p = data["pooled"]
+    lines = ["| object | instances | best shift right, down (px) | colour correlation there | at the truth |",
+             "|---|---:|---|---:|---:|",
+             (f"| **pooled** | {data['instances']} | **{p['du_px']:+.1f}, {p['dv_px']:+.1f}** | {p['ncc_peak']:.3f} | "
+             f"{p['ncc_at_truth']:.3f} |")]
+    for obj, b in data["by_object"].items():
+        lines.append(f"| {obj} | {b['instances']} | {b['du_px']:+.1f}, {b['dv_px']:+.1f} | {b['ncc_peak']:.3f} | "
+                     f"{b['ncc_at_truth']:.3f} |")
+    reach = max(data["shifts_px"])
+    return "\n".join([*lines, "", (f"Shifts tried: every {data['shifts_px'][1] - data['shifts_px'][0]:g} px up to "
+                      f"{reach:g} px each way; a peak at {reach:g} px is at the grid's edge (no peak within it)."),
+                      provenance_line(data, data.get("command")), f"Files: `{RESULTS_DIR.as_posix()}/{folder.name}/`."])
 
 
 @section("jpeg_bound")

@@ -70,6 +70,9 @@ def test_evaluate_scores_each_level(tmp_path):
     assert 1.0 < a["nees_mean"] < 20.0  # e ~ N(0, cov / 4): NEES ~ chi2(6)
     assert none["ok"] == 0 and none["share_proj_5px"] == 0.0 and none["median_proj_px"] is None
     assert {r["status"] for r in out["none"]["answers"]} == {"REFUSED"}
+    assert all(np.all(np.isfinite(r["centre_offset_px"])) and len(r["centre_offset_px"]) == 2
+               for r in out["10mm/5deg"]["answers"])  # where each answer puts the centre in the image
+    assert not any("centre_offset_px" in r for r in out["none"]["answers"])
     again = evaluate(targets, frames, parse_levels("10:5"), 4, 0, 640, 480)
     assert again["10mm/5deg"]["summary"]["median_proj_px"] == a["median_proj_px"]  # seeded
 

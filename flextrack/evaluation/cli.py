@@ -15,6 +15,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
               "score an estimator on a BOP folder with priors drawn around the ground truth"),
     "nees": ("flextrack.evaluation.nees_calibration",
              "are the estimators' pose covariances calibrated? mean NEES of held-out answers vs chi2(6)"),
+    "gt-offset": ("flextrack.evaluation.gt_offset",
+                  "does a BOP dataset's ground truth sit where its images show the objects? (meshes' vertex colours)"),
 }
 
 

@@ -11,7 +11,8 @@ answers under 5 px of 2D projection error (BOP's proj over the model's vertices,
 object's symmetries), the share under ADD(-S) 10 % of the diameter (ADD-S for objects with symmetries),
 the median 2D error (a failure counts as infinitely far), the share answered OK yet more than 20 px
 off (confident and wrong), the same for the priors themselves, the time per estimate and the NEES of
-the answers' covariances (against the nearest symmetric pose). Draw d of every level runs as one
+the answers' covariances (against the nearest symmetric pose); per answer, also where it puts the object's
+centre in the image against the truth (`centre_offset_px`: a lean shows there). Draw d of every level runs as one
 session per object through the frames in order (the colour histograms carry over, as on a device),
 unless `--fresh` starts every instance afresh. `--part even|odd` keeps every other frame of each
 scene, so that settings tuned on one half are scored on the other.
@@ -37,7 +38,7 @@ import numpy as np
 
 from flextrack.formats import bop
 from flextrack.geometry import metrics, se3, so3
-from flextrack.geometry.camera import PinholeCamera
+from flextrack.geometry.camera import PinholeCamera, project_model
 from flextrack.provenance import provenance
 
 DEFAULT_LEVELS = "10:5,20:10,none"
@@ -252,7 +253,10 @@ def evaluate(targets: dict[int, Target], frames: list[Frame], levels: list[Prior
                        min(metrics.proj_px(prior, T, camera, target.points_O) for T in truths),
                        "nees": min(nees(pose_error(ans.T_CO, T), ans.covariance) for T in truths)
                        if ok and ans.covariance is not None else None}
-                if not ok:
+                if ok:  # where in the image the answer puts the object's centre, against the truth (a lean shows here)
+                    answer, truth = (project_model(camera, T, target.center_O[None])[0] for T in (ans.T_CO, f.T_gt))
+                    row["centre_offset_px"] = (answer - truth).tolist()
+                else:
                     row["message"] = message
                 rows.append(row)
                 if progress:
