@@ -53,7 +53,8 @@ EXAMPLES: dict[str, list[str]] = {
     "report": ["flextrack report --check", "flextrack report --list"],
     "evaluate": ["flextrack evaluate nees --out out/nees",
                  ("flextrack evaluate prior --bop ../shared/data/lmo --obj-id all --estimator region --fresh "
-                  "--out out/prior.json")],
+                  "--out out/prior.json"),
+                 "flextrack evaluate gt-offset --bop ../shared/data/lmo --out out/gt_offset.json"],
 }
 
 
