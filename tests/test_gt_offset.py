@@ -65,3 +65,10 @@ def test_a_mesh_without_vertex_colours_is_a_clear_error(tmp_path, capsys):
     root = bop_folder(tmp_path / "bop", shift_px=np.zeros(2), coloured=False)
     assert gt_offset.run(args_for(root)) == 2
     assert "has no vertex colours" in capsys.readouterr().err
+
+
+def test_an_unreadable_frame_is_a_clear_error(tmp_path, capsys):
+    root = bop_folder(tmp_path / "bop", shift_px=np.zeros(2))
+    (root / "test" / "000002" / "rgb" / "000000.png").write_bytes(b"not a png")
+    assert gt_offset.run(args_for(root)) == 2
+    assert "cannot read the image" in capsys.readouterr().err

@@ -18,7 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from flextrack.evaluation.prior_eval import _object_ids, bop_instances
+from flextrack.evaluation.prior_eval import bop_instances, object_ids
 from flextrack.provenance import of_args
 
 FACING_COS = 0.3  # vertices whose normal turns at least this much to the camera: seen, not grazing
@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{prog}: --step-px must be positive and --reach-px at least one step", file=sys.stderr)
         return 2
     try:
-        obj_ids = _object_ids(args.obj_id, args.bop / "models")
+        obj_ids = object_ids(args.obj_id, args.bop / "models")
         vertices = {o: coloured_vertices(args.bop / "models" / f"obj_{o:06d}.ply") for o in obj_ids}
     except (ValueError, OSError) as exc:
         print(f"{prog}: {exc}", file=sys.stderr)
@@ -99,12 +99,19 @@ def run(args: argparse.Namespace) -> int:
     for k, inst in enumerate(instances):
         if inst.rgb_path != image_path:
             image_path = inst.rgb_path
-            image = cv2.cvtColor(cv2.imread(str(image_path)), cv2.COLOR_BGR2RGB).astype(np.float32)
+            bgr = cv2.imread(str(image_path))
+            if bgr is None:
+                print(f"{prog}: cannot read the image {image_path}", file=sys.stderr)
+                return 2
+            image = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32)
         grid = shift_correlations(image, inst.K, inst.T_gt, vertices[inst.obj_id], shifts)
         if grid is not None:
             grids.setdefault(inst.obj_id, []).append(grid)
         if (k + 1) % 100 == 0:
             print(f"  {k + 1} of {len(instances)} instances", file=sys.stderr, flush=True)
+    if not grids:
+        print(f"{prog}: no instance shows enough of its mesh's surface to the camera", file=sys.stderr)
+        return 2
     pooled = np.mean([g for gs in grids.values() for g in gs], axis=0)
     result = {"command": "flextrack evaluate gt-offset " + " ".join(sys.argv[3:]), **of_args(args),
               "instances": sum(len(g) for g in grids.values()), "shifts_px": shifts.tolist(),

@@ -316,7 +316,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=None, help="result JSON (default: print only)")
 
 
-def _object_ids(text: str, models: Path) -> list[int]:
+def object_ids(text: str, models: Path) -> list[int]:
+    """The BOP object ids an --obj-id names: 'all' of the models folder's obj_NNNNNN.ply, or a comma list."""
     if text.strip() == "all":
         return sorted(int(p.stem[4:]) for p in models.glob("obj_*.ply") if p.stem[4:].isdigit())
     try:
@@ -355,7 +356,7 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     try:
-        obj_ids = _object_ids(args.obj_id, args.bop / "models")
+        obj_ids = object_ids(args.obj_id, args.bop / "models")
     except ValueError as exc:
         print(f"{prog}: {exc}", file=sys.stderr)
         return 2
