@@ -37,12 +37,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def coloured_vertices(ply: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Vertices (m), their normals and RGB colours of a BOP mesh (mm); ValueError when it has no colours."""
-    import trimesh
+    from flextrack.simulator.render import load_model
 
-    mesh = trimesh.load(ply, process=False, force="mesh")
+    mesh = load_model(ply)
     if getattr(mesh.visual, "kind", None) != "vertex":  # trimesh makes up grey ones for a mesh without
         raise ValueError(f"{ply} has no vertex colours")
-    return (np.asarray(mesh.vertices) / 1000.0, np.asarray(mesh.vertex_normals),
+    return (np.asarray(mesh.vertices), np.asarray(mesh.vertex_normals),
             np.asarray(mesh.visual.vertex_colors)[:, :3].astype(np.float32))
 
 
@@ -57,14 +57,12 @@ def shift_correlations(image: np.ndarray, K: np.ndarray, T_CO: np.ndarray, verti
         return None
     uv = (P[facing] @ K.T)[:, :2] / P[facing, 2:3]
     c = colours[facing] - colours[facing].mean(axis=0)
-    out = np.zeros((len(shifts), len(shifts)))
-    for i, dv in enumerate(shifts):
-        for j, du in enumerate(shifts):
-            at = (uv + [du, dv]).astype(np.float32)
-            seen = cv2.remap(image, at[:, :1], at[:, 1:], cv2.INTER_LINEAR).reshape(-1, 3)
-            s = seen - seen.mean(axis=0)
-            out[i, j] = float((s * c).sum() / (np.linalg.norm(s) * np.linalg.norm(c) + 1e-9))
-    return out
+    dv, du = np.meshgrid(shifts, shifts, indexing="ij")
+    at = (uv[None] + np.stack([du.ravel(), dv.ravel()], axis=1)[:, None, :]).astype(np.float32)  # (shift, N, 2)
+    seen = cv2.remap(image, at[..., 0], at[..., 1], cv2.INTER_LINEAR)  # every shift's samples in one call
+    s = seen - seen.mean(axis=1, keepdims=True)
+    ncc = (s * c).sum(axis=(1, 2)) / (np.linalg.norm(s, axis=(1, 2)) * np.linalg.norm(c) + 1e-9)
+    return ncc.reshape(len(shifts), len(shifts))
 
 
 def peak(grid: np.ndarray, shifts: np.ndarray) -> dict:

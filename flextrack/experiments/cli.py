@@ -48,8 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backend-ms", type=float, default=145.0,
                         help="table2 --backend: modelled compute time of the estimator per frame, ms (virtual time; "
                         "145 = pvnet's whole-frame cost when the stored pvnet tables were made, kept so they can be rerun "
-                        "alike; `flextrack bench pvnet` now measures about 44 ms whole and 31 ms on crops, "
-                        "docs/benchmarks.md)")
+                        "alike; `flextrack bench pvnet` measures what it costs now, docs/benchmarks.md)")
     parser.add_argument("--data", type=Path, help="euroc: the EuRoC folder (default ../shared/data/euroc_v1_02_medium); "
                         "ablation: run on this recording (a hand-held one, EuRoC layout) instead of the simulated programs")
     parser.add_argument("--tracker", choices=PRESETS, default=None,
