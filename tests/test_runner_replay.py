@@ -144,6 +144,22 @@ def test_a_sequence_s_declared_floor_is_checked(tmp_path):
             declared_floor(dataclasses.replace(seq, meta={TIMING_EXTRINSIC_KEY: bad}))
 
 
+def test_a_sequence_s_declared_gyro_scale_error_reaches_the_filter_and_is_checked(tmp_path):
+    """The simulator's gyro has no scale error and says so; a recording that says nothing gets a phone's."""
+    from flextrack.runners.exchange import GYRO_SCALE_KEY, declared_gyro_scale, tracker_for
+
+    seq = sequence_io.load(generate_sequence("translational", "easy", tmp_path / "t", duration_s=1.0, fps=10.0))
+    vertices = session.model_vertices(seq)
+    assert declared_gyro_scale(seq) == 0.0
+    assert tracker_for(seq, vertices, TrackerOptions()).options.filter.gyroscope_scale_error == 0.0
+    real = dataclasses.replace(seq, meta={})
+    assert declared_gyro_scale(real) is None
+    assert tracker_for(real, vertices, TrackerOptions()).options.filter.gyroscope_scale_error == 0.02
+    for bad in (-0.01, 0.5, "x", float("nan"), [0.02]):
+        with pytest.raises(ValueError, match=GYRO_SCALE_KEY):
+            declared_gyro_scale(dataclasses.replace(seq, meta={GYRO_SCALE_KEY: bad}))
+
+
 def test_the_filter_s_error_dynamics_change_nothing_and_give_the_nees_interval(phone_seq):
     registry = oracle_registry([phone_seq.root], noise_seed=5)
     vertices = session.model_vertices(phone_seq)

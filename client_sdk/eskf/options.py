@@ -40,6 +40,12 @@ class FilterOptions:
     look like far more white noise than its samples show (a hand-held Nexus 5: ~50x the yaml's gyro)."""
     noise_match_answers: float = 100.0
     """The innovation fit's memory, answers (~6 s at the phone experiment's answer rate)."""
+    gyroscope_scale_error: float = 0.02
+    """1-sigma of each entry of the gyro's scale-and-misalignment error (a fraction): the rate it reports is
+    (I + M) times the true one. A consumer MEMS gyro's datasheet allows +-3 % sensitivity and +-2 % cross-axis
+    (InvenSense MPU-6500); nothing calibrates it on a phone. Its error, M w, grows with the rate, which no
+    white density models (`eskf.propagator`); a sequence whose IMU has none (the simulator's) declares 0
+    (sequence.yaml `gyroscope_scale_error`)."""
 
     max_imu_gap_s: float = 0.05
     """An interval between IMU samples longer than this (or a time this far past the newest sample) was not

@@ -6,7 +6,11 @@ Continuous-time error dynamics, with w = w_m - b_g and a = a_m - b_a (body frame
     d_v'     = -R [a]x d_theta - R d_ba + d_g - R n_a
     d_bg'    = n_wg        d_ba' = n_wa         d_g' = 0       d_td' = 0
 
-discretised to first order, Phi = I + A dt, Q = diag(sigma^2 dt) with Kalibr's densities. The 36
+discretised to first order, Phi = I + A dt, Q = diag(sigma^2 dt) with Kalibr's densities, plus the
+gyro's scale-and-misalignment error: a constant M (each entry sigma_M, `gyroscope_scale_error`) errs by
+M w, which turns the orientation by about M w T over the T the IMU alone carries it (from one answer's
+capture to the next answer's arrival), of variance sigma_M^2 |w|^2 T^2 per axis: as a white density over T, sigma_M^2 |w|^2 T, added to
+the gyro's on the orientation's diagonal each sample (T a running mean). The 36
 non-trivial entries of Phi are kept in one array and only those that changed are written (an indexed
 assignment each): the whole step costs a few microseconds, two 19x19 products included.
 """
@@ -42,6 +46,8 @@ _Q_EVERY = 20  # samples between updates of Q from the in-use noise estimate
 # replaces it.
 _RAISE_ABOVE = 1.2
 _Q_INDEX = np.array(_flat((k, k) for k in (0, 1, 2, 6, 7, 8, 9, 10, 11, 12, 13, 14)))
+_HORIZON_S = (0.1, 0.01, 0.5)  # the scale error's T: before the first answer interval, and its bounds
+_HORIZON_WEIGHT = 0.1  # each answer interval's weight in T's running mean
 
 
 class CovariancePropagator:
@@ -63,6 +69,8 @@ class CovariancePropagator:
         self._pending: list[tuple] = []  # the samples not yet in it, and the three before them
         self._phi = _IDENTITY.copy()
         self._phi_dt = 0.0  # the interval the +-dt entries of _phi hold
+        self._scale2 = options.gyroscope_scale_error ** 2
+        self._horizon_s = _HORIZON_S[0]  # T, the interval the IMU alone carries the orientation
         self._set_q(*self._densities)
 
     def _set_q(self, gyro_density: float, accel_density: float) -> None:
@@ -104,6 +112,12 @@ class CovariancePropagator:
             return
         self._matched = (gyro_density, accel_density)
         self._set_q(*map(max, self._seen, self._matched))
+
+    def note_answer_interval(self, dt: float) -> None:
+        """One more span (s) the IMU alone carried the pose, from an answer's capture to the next one's arrival,
+        measured across: the scale error's horizon T."""
+        lo, hi = _HORIZON_S[1], _HORIZON_S[2]
+        self._horizon_s += _HORIZON_WEIGHT * (min(max(dt, lo), hi) - self._horizon_s)
 
     @property
     def densities(self) -> tuple[float, float]:
@@ -152,4 +166,9 @@ class CovariancePropagator:
             q.ravel()[_Q_INDEX] = self._q_density * dt
             self._q_dt = (dt, q)
         out += self._q_dt[1]  # a dense add: cheaper than an indexed one
+        if self._scale2:  # the scale error's share, which moves with the rate (see the module's docstring)
+            v = self._scale2 * self._horizon_s * (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) * dt
+            out[0, 0] += v
+            out[1, 1] += v
+            out[2, 2] += v
         return out

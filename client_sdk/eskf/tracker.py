@@ -449,7 +449,10 @@ class FilterTracker(TrackerBase):
         res = update(st, self._td, T, sigma, self._R_CB, self._t_CB, self._rate_at(tau, st),
                      0.0 if in_gap else self._rate_noise_var(tau), fo.gate_chi2, fo.gravity_state,
                      offset_observable=not in_gap)
-        self._match_noise(res, st, age_s)
+        measured = not in_gap and self._measured_since(self._anchor[0])
+        if measured:  # how long the IMU alone carried the pose, from the last answer's capture to now
+            self._prop.note_answer_interval((buf.last_t_ns - self._anchor[0]) * NS)
+        self._match_noise(res, st, age_s, measured)
         if not res.accepted:
             self._rejected += 1
             if self._rejected < fo.max_rejections:
@@ -474,13 +477,14 @@ class FilterTracker(TrackerBase):
             self._ease = (self._ease_left(t_shown) + jump, t_shown)
         return self._outcome(ResponseOutcome.APPLIED, "tracking" + note)
 
-    def _match_noise(self, res, st: FilterState, dt: float) -> None:
+    def _match_noise(self, res, st: FilterState, dt: float, measured: bool) -> None:
         """Feed an answer's innovation to the noise fits and use what they say: the IMU's (`eskf.noise_matching`)
         when the IMU measured everything since the last answer, the hand motion's (`eskf.coasting`) when both
         answers lie in one gap of its stream, none across a gap's edge. A gated answer counts as one on the
         gate (an outlier's size says nothing of the noise; that the filter gated it may: too little process
         noise); the first SETTLE_ANSWERS after a (re-)initialisation not at all (a start's transient is no
-        noise: a simulated 8 s run at 30 FPS had its densities raised by it)."""
+        noise: a simulated 8 s run at 30 FPS had its densities raised by it). `measured`: the IMU measured
+        everything since the last answer."""
         self._since_start += 1
         if res.residual is None:
             return
@@ -491,8 +495,7 @@ class FilterTracker(TrackerBase):
                 Rp = self._t_CB - self._T_CO(st.x)[:3, 3]
                 self._gap_noise.add(res.residual * shrink ** 0.5, res.S, Rp, dt)
             return
-        if (self._since_start <= SETTLE_ANSWERS or self._matchers is None or anchor.held is not None
-                or not self._measured_since(self._anchor[0])):
+        if self._since_start <= SETTLE_ANSWERS or self._matchers is None or anchor.held is not None or not measured:
             return
         now = self._prop.densities
         for m, d, (r2, trace_s, trace_s2) in zip(self._matchers, now, blocks(res.residual, res.S)):

@@ -25,6 +25,8 @@ from flextrack.v1 import pose_estimation_pb2 as pb
 # sequence.yaml's key for what a recording cannot know exactly: its camera-IMU extrinsic and its frame times,
 # as one per-axis rotation (deg) and translation (m) on every answer (FilterOptions.answer_floor_*).
 TIMING_EXTRINSIC_KEY = "timing_extrinsic_std"
+# ... and for its gyro's scale-and-misalignment error, a fraction per entry (FilterOptions.gyroscope_scale_error).
+GYRO_SCALE_KEY = "gyroscope_scale_error"
 
 
 def declared_floor(seq: Sequence) -> tuple[float, float] | None:
@@ -46,10 +48,28 @@ def declared_floor(seq: Sequence) -> tuple[float, float] | None:
     return values
 
 
+def declared_gyro_scale(seq: Sequence) -> float | None:
+    """The gyro scale-and-misalignment error the sequence declares under GYRO_SCALE_KEY (the simulator: 0, its
+    gyro has none), or None when it declares nothing (a real recording: the tracker's default, a phone's).
+    ValueError for a declaration that is not a number in [0, 0.5)."""
+    declared = seq.meta.get(GYRO_SCALE_KEY)
+    if declared is None:
+        return None
+    try:
+        value = float(declared)
+    except (TypeError, ValueError):
+        value = math.nan
+    if not 0.0 <= value < 0.5:
+        raise ValueError(f"{seq.root / 'sequence.yaml'}: {GYRO_SCALE_KEY} must be a fraction in [0, 0.5), "
+                         f"got {declared!r}")
+    return value
+
+
 def tracker_for(seq: Sequence, vertices_O: np.ndarray, options: TrackerOptions | None,
                 record_error_dynamics: bool = True):
-    """The tracker core the options name; the filter's IMU densities are the sequence's (imu0/sensor.yaml), so is
-    its answer floor where the sequence declares one (`declared_floor`), and it keeps its error dynamics for the
+    """The tracker core the options name; the filter's IMU densities are the sequence's (imu0/sensor.yaml), so are
+    its answer floor and gyro scale error where the sequence declares them (`declared_floor`,
+    `declared_gyro_scale`), and it keeps its error dynamics for the
     NEES interval unless told not to (the timing experiment)."""
     options = options or TrackerOptions()
     if options.fusion == "filter":
@@ -61,6 +81,9 @@ def tracker_for(seq: Sequence, vertices_O: np.ndarray, options: TrackerOptions |
         floor = declared_floor(seq)
         if floor is not None:
             fo = replace(fo, answer_floor_rotation_deg=floor[0], answer_floor_translation_m=floor[1])
+        scale = declared_gyro_scale(seq)
+        if scale is not None:
+            fo = replace(fo, gyroscope_scale_error=scale)
         options = replace(options, filter=fo)
     return create_tracker(options, seq.camera, seq.T_BC, bbox_corners(vertices_O))
 

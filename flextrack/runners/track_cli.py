@@ -233,6 +233,9 @@ def run(args) -> int:
             raise ValueError(f"--set filter.{floor_set[0]}: {args.sequence} declares what it cannot know exactly "
                              f"(sequence.yaml {exchange.TIMING_EXTRINSIC_KEY}), which the tracker's answer floor "
                              "is set from; edit it there")
+        if "gyroscope_scale_error" in overrides(args.set)[1] and exchange.declared_gyro_scale(loaded) is not None:
+            raise ValueError(f"--set filter.gyroscope_scale_error: {args.sequence} declares its gyro's scale error "
+                             f"(sequence.yaml {exchange.GYRO_SCALE_KEY}); edit it there")
         registry = None if args.server else session.registry_for(loaded, spec)
         kind = estimator_kind(args.backend, registry, args.server)
         if kind is None and registry is not None:

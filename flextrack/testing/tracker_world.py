@@ -84,13 +84,14 @@ def drive(motion: Motion, options: TrackerOptions | None = None, duration_s: flo
           imu_hz: float = 200.0, latency_s: float = 0.05, b_g=(0.0, 0.0, 0.0), b_a=(0.0, 0.0, 0.0),
           gyro_sigma: float = 0.0, accel_sigma: float = 0.0, seed: int = 0, answer=None,
           bias_from_s: float = 0.0, imu_log: list | None = None, answer_covariance=None,
-          imu_delay_s: float = 0.0) -> Run:
+          imu_delay_s: float = 0.0, gyro_scale=None) -> Run:
     """Feed IMU, frames and ground-truth backend responses (after `latency_s`) in time order to the
     tracker core `options.fusion` names.
 
     The biases are added from `bias_from_s` on. `answer(t_capture_s) -> T_CO or None` replaces the
     ground-truth backend when given; `answer_covariance` (6x6) goes with every answer. The IMU
-    stamps each sample `imu_delay_s` late (a camera-IMU time offset). `imu_log`, when given,
+    stamps each sample `imu_delay_s` late (a camera-IMU time offset). `gyro_scale` (3x3 M), when given, makes
+    the gyro read (I + M) times the true rate (a scale-and-misalignment error). `imu_log`, when given,
     receives every (t_ns, gyro, accel) fed.
     """
     rng = np.random.default_rng(seed)
@@ -111,6 +112,8 @@ def drive(motion: Motion, options: TrackerOptions | None = None, duration_s: flo
         if kind == "imu":
             w, f = motion.imu((t - delay) * 1e-9)
             on = 1.0 if (t - delay) * 1e-9 >= bias_from_s else 0.0
+            if gyro_scale is not None:
+                w = w + np.asarray(gyro_scale) @ w
             w = w + on * np.asarray(b_g) + gyro_sigma * rng.standard_normal(3)
             f = f + on * np.asarray(b_a) + accel_sigma * rng.standard_normal(3)
             tracker.add_imu(t, w, f)
