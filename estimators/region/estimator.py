@@ -26,7 +26,7 @@ from flextrack.geometry import se3, so3
 PARAMS = {"scales", "iterations_per_scale", "coarse_iterations", "half_segments", "line_weight", "damping_rotation",
           "damping_translation", "covariance_inflation", "inflation_by_confidence", "default_prior_sigma_m", "default_prior_sigma_deg",
           "bins", "learning_rate", "max_sessions", "max_session_age_s", "views_subdivisions", "contour_points",
-          "cache_dir", "min_confidence", "histogram_px", "refit_scales", "refits", "margin_factors", "session_weight",
+          "cache_dir", "min_confidence", "min_confidence_coarse", "histogram_px", "refit_scales", "refits", "margin_factors", "session_weight",
           "retry_below", "retry_margin_factors", "coarse_search", "unmix",
           "refit_unmix", "multi_start_deg", "multi_start_sigmas", "flip_check", "flip_margin",
           "flip_check_below", "max_prior_nis"}
@@ -43,7 +43,7 @@ class RegionEstimator(Estimator):
                  default_prior_sigma_m: float = 0.02, default_prior_sigma_deg: float = 10.0, bins: int = 16,
                  learning_rate: float = 0.2, max_sessions: int = 1024, max_session_age_s: float = 600.0,
                  views_subdivisions: int = 4, contour_points: int = 200, cache_dir: str | Path | None = None,
-                 min_confidence: float = 0.3, histogram_px: int = 20, refit_scales: tuple[int, ...] = (1,),
+                 min_confidence: float = 0.3, min_confidence_coarse: float = 0.45, histogram_px: int = 20, refit_scales: tuple[int, ...] = (1,),
                  refits: int = 1, margin_factors: tuple[float, float] = (0.5, 0.5), session_weight: float = 0.5,
                  retry_below: float = 0.45, retry_margin_factors: tuple[float, float] | None = (1.0, 2.0),
                  coarse_search: bool = True, unmix: float = 0.3, refit_unmix: float = 0.15,
@@ -60,6 +60,7 @@ class RegionEstimator(Estimator):
         self.view_options = {"subdivisions": views_subdivisions, "n_points": contour_points}
         self.cache_dir = Path(cache_dir) if cache_dir else None
         self.min_confidence = min_confidence
+        self.min_confidence_coarse = max(min_confidence, min_confidence_coarse)
         self.histogram_px = histogram_px
         self.refit_scales = tuple(refit_scales)
         self.refits = refits
@@ -286,8 +287,11 @@ class RegionEstimator(Estimator):
         # the pixels as histogram cells, once, as far around the prior's outline as any line may reach
         reach = max(self.optimizer.scales) * self.optimizer.line_model.half_segments
         frame = CellImage.around(image, hist, lines.centers, reach + 3 * prior_px + 2 * self.histogram_px)
+        starts = self._starts(R0, t0, cov)
         fits = [self._fit(frame, shape, K, model, hist, R0, t0, information, prior_px, self.margin_factors, s)
-                for s in self._starts(R0, t0, cov)]
+                for s in starts]
+        # from a coarse prior a weak fit is as often far off as near: it is refused, not answered (docs/region.md)
+        needed = self.min_confidence_coarse if len(starts) > 1 else self.min_confidence
         best = max(fits, key=lambda fit: fit[0])
         if best[1] < self.retry_below and self.retry_margin_factors:
             # lost, most likely from histograms learned off the prior's outline: again, further off it
@@ -295,7 +299,7 @@ class RegionEstimator(Estimator):
                               self.retry_margin_factors)
             best = max(best, other, key=lambda fit: fit[0])
         score, confidence, result, lines = best
-        if result is not None and confidence >= self.min_confidence and self.flip_check \
+        if result is not None and confidence >= needed and self.flip_check \
                 and (fresh or score < self.flip_check_below):
             flip_T = se3.turned_about_line_of_sight(inp.prior_T_CO, model.center)
             flip = (flip_T[:3, :3], flip_T[:3, 3])
@@ -310,15 +314,16 @@ class RegionEstimator(Estimator):
         stage["optimize"] = (time.perf_counter() - t_opt) * 1e3
         if result is None or lines is None:
             return EstimateOutput.not_found("the object's outline left the image")
-        if confidence >= self.min_confidence:
+        if confidence >= needed:
             hist.update(*self._histogram_samples(frame, lines))
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = result.R, result.t
         stage["total"] = (time.perf_counter() - start) * 1e3
         message = "" if not fresh else "new session: colour histograms started from the prior"
-        if confidence < self.min_confidence:
+        if confidence < needed:
+            coarse = " needed from a coarse prior: keep lining up" if len(starts) > 1 else ""
             return EstimateOutput(Status.OBJECT_NOT_FOUND, message=f"the colours do not fit the outline "
-                                  f"(confidence {confidence:.2f} < {self.min_confidence})", confidence=confidence,
+                                  f"(confidence {confidence:.2f} < {needed}{coarse})", confidence=confidence,
                                   stage_ms=stage)
         covariance = answer_covariance(result, self.optimizer, confidence) + self._fits_scatter(fits, best)
         nis = self.prior_nis(result, R0, t0, cov, covariance)
