@@ -10,9 +10,9 @@ from estimators.objects import load_object
 from estimators.region.estimator import RegionEstimator
 from estimators.region.histograms import ColourHistograms
 from estimators.region.optimizer import OptimizationResult, OptimizerConfig, answer_covariance
-from estimators.region.session_store import SessionStore
 from estimators.region.viewpoint_model import cached_viewpoint_model, look_at
 from estimators.registry import EstimatorRegistry
+from estimators.session_store import SessionStore
 from flextrack import assets
 from flextrack.geometry import metrics, se3, so3
 from flextrack.geometry.camera import PinholeCamera, project_model
@@ -403,6 +403,33 @@ def test_chained_routes_by_prior_and_falls_back_after_a_loss():
     no_fallback = ChainedEstimator("c2", glob, local, fallback=False)
     assert no_fallback.estimate(EstimateInput(frame_id=7, capture_time_ns=0, prior_T_CO=prior)).status \
         == Status.OBJECT_NOT_FOUND
+
+
+def test_chained_re_anchors_every_nth_request_of_a_session_on_its_global_part():
+    """A local estimator keeps what it cannot see of its prior's error (region: a turn out of the image plane);
+    every `global_every`-th request of a session, counted per session, goes to the global part even with a usable
+    prior, and when that answer is not OK the local part answers the request."""
+    glob, local = Recorder("global"), Recorder("local")
+    chained = ChainedEstimator("chained", glob, local, global_every=3)
+    prior = se3.make(np.eye(3), np.array([0.0, 0.0, 0.6]))
+    ask = lambda i, session: chained.estimate(EstimateInput(frame_id=i, capture_time_ns=0, prior_T_CO=prior,
+                                                            session_id=session))
+    for i in range(1, 8):
+        ask(i, "a")
+    ask(100, "b")  # another session counts from its own start
+    ask(200, "")  # no session: nothing to count, never re-anchored
+    assert glob.calls == [3, 6] and local.calls == [1, 2, 4, 5, 7, 100, 200]
+    glob.status = Status.OBJECT_NOT_FOUND
+    ask(8, "a")
+    out = ask(9, "a")  # due: the global part fails, the local part answers
+    assert glob.calls[-1] == 9 and local.calls[-1] == 9 and out.status == Status.OK and "local" in out.stage_ms
+    never = ChainedEstimator("c3", glob, local, global_every=0)
+    calls = len(glob.calls)
+    for i in range(20):
+        never.estimate(EstimateInput(frame_id=i, capture_time_ns=0, prior_T_CO=prior, session_id="a"))
+    assert len(glob.calls) == calls
+    with pytest.raises(ValueError, match="global_every"):
+        ChainedEstimator("c4", glob, local, global_every=-1)
 
 
 def test_default_config_serves_region_and_the_chained_estimator():

@@ -19,8 +19,8 @@ from estimators.base import EstimateInput, EstimateOutput, Estimator, InvalidInp
 from estimators.region.correspondence import CellImage, LineModel, project_lines, sample_pixels
 from estimators.region.histograms import ColourHistograms
 from estimators.region.optimizer import OptimizerConfig, answer_covariance, optimize, pose_error
-from estimators.region.session_store import SessionStore
 from estimators.region.viewpoint_model import ViewpointModel, cached_viewpoint_model
+from estimators.session_store import SessionStore
 from flextrack.geometry import se3, so3
 
 PARAMS = {"scales", "iterations_per_scale", "coarse_iterations", "half_segments", "line_weight", "damping_rotation",

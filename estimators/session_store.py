@@ -1,8 +1,9 @@
-"""Per-session state on the server (the colour histograms), bounded in count and in age.
+"""Per-session state on the server (region's colour histograms, the chained estimator's request count),
+bounded in count and in age.
 
-A session's histograms adapt to its user's scene and are never shared: the key is the request's
-`session_id` with the object id. Entries unused for `max_age_s` are dropped, and past
-`max_sessions` the least recently used one is evicted; an unknown (or evicted) session starts fresh.
+A session's state is its own and never shared: the key is the request's `session_id` with the object id.
+Entries unused for `max_age_s` are dropped, and past `max_sessions` the least recently used one is
+evicted; an unknown (or evicted) session starts fresh.
 Thread-safe: the service may call the estimator from several worker threads.
 """
 
