@@ -165,3 +165,23 @@ def test_bound_puts_the_filter_beside_the_riccati_bound(tmp_path, capsys):
         # the filter's covariances are the Riccati solution: on the noisy run they say what the bound says
         assert predicted == pytest.approx(bound, rel=0.1)
     assert "Riccati bound" in capsys.readouterr().out
+
+
+def test_a_cached_simulated_sequence_that_predates_the_generator_s_declarations_is_made_again(tmp_path):
+    """An experiment's `out/.../sequences` cache from before the simulator declared its exact IMU and timing
+    (sequence.yaml) would give the tracker a phone's defaults for them: such a sequence is generated again."""
+    import yaml
+
+    from flextrack.experiments.common import SIMULATOR_DECLARES, SimSpec, simulated
+
+    spec = SimSpec("translational", "easy", 10.0, seed=1, duration_s=1.0)
+    first = simulated(tmp_path, spec)
+    assert all(key in first.meta for key in SIMULATOR_DECLARES)
+    meta_path = tmp_path / spec.name / "sequence.yaml"
+    old = {k: v for k, v in first.meta.items() if k not in SIMULATOR_DECLARES}
+    meta_path.write_text(yaml.safe_dump(old))
+    again = simulated(tmp_path, spec)
+    assert all(key in again.meta for key in SIMULATOR_DECLARES)
+    assert np.array_equal(again.imu.gyro, first.imu.gyro)  # the same seeded sequence
+    stamp = meta_path.stat().st_mtime_ns
+    assert simulated(tmp_path, spec).meta == again.meta and meta_path.stat().st_mtime_ns == stamp  # kept as it is
