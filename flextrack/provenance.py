@@ -10,6 +10,7 @@ import datetime
 import json
 import platform
 import subprocess
+import sys
 from pathlib import Path
 
 _HERE = Path(__file__).resolve().parent
@@ -35,6 +36,14 @@ def provenance(**options) -> dict:
             "dirty": bool(_git("status", "--porcelain", "--untracked-files=no")) if commit else None,
             "host": platform.node(), "python": platform.python_version(),
             "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")}
+
+
+def command_line(*words: str) -> str:
+    """The command as typed, `flextrack WORDS ARGS...`: the arguments after WORDS when sys.argv holds them, else
+    all of sys.argv's (a module run on its own)."""
+    n = len(words)
+    rest = sys.argv[1 + n:] if sys.argv[1:1 + n] == list(words) else sys.argv[1:]
+    return " ".join(["flextrack", *words, *rest])
 
 
 def of_args(args, **extra) -> dict:

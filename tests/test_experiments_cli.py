@@ -172,7 +172,8 @@ def test_a_cached_simulated_sequence_that_predates_the_generator_s_declarations_
     (sequence.yaml) would give the tracker a phone's defaults for them: such a sequence is generated again."""
     import yaml
 
-    from flextrack.experiments.common import SIMULATOR_DECLARES, SimSpec, simulated
+    from flextrack.experiments.common import SimSpec, simulated
+    from flextrack.runners.exchange import SIMULATOR_DECLARATIONS as SIMULATOR_DECLARES
 
     spec = SimSpec("translational", "easy", 10.0, seed=1, duration_s=1.0)
     first = simulated(tmp_path, spec)

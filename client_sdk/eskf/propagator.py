@@ -9,8 +9,9 @@ Continuous-time error dynamics, with w = w_m - b_g and a = a_m - b_a (body frame
 discretised to first order, Phi = I + A dt, Q = diag(sigma^2 dt) with Kalibr's densities, plus the
 gyro's scale-and-misalignment error: a constant M (each entry sigma_M, `gyroscope_scale_error`) errs by
 M w, which turns the orientation by about M w T over the T the IMU alone carries it (from one answer's
-capture to the next answer's arrival), of variance sigma_M^2 |w|^2 T^2 per axis: as a white density over T, sigma_M^2 |w|^2 T, added to
-the gyro's on the orientation's diagonal each sample (T a running mean). The 36
+capture to the next answer's arrival), of variance sigma_M^2 |w|^2 T^2 per axis: as a white density
+over T, sigma_M^2 |w|^2 T, added to the gyro's on the orientation's diagonal each sample (T a running
+mean). The 36
 non-trivial entries of Phi are kept in one array and only those that changed are written (an indexed
 assignment each): the whole step costs a few microseconds, two 19x19 products included.
 """

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from flextrack.evaluation.prior_eval import bop_instances, object_ids
-from flextrack.provenance import of_args
+from flextrack.provenance import command_line, of_args
 
 FACING_COS = 0.3  # vertices whose normal turns at least this much to the camera: seen, not grazing
 
@@ -111,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{prog}: no instance shows enough of its mesh's surface to the camera", file=sys.stderr)
         return 2
     pooled = np.mean([g for gs in grids.values() for g in gs], axis=0)
-    result = {"command": "flextrack evaluate gt-offset " + " ".join(sys.argv[3:]), **of_args(args),
+    result = {"command": command_line("evaluate", "gt-offset"), **of_args(args),
               "instances": sum(len(g) for g in grids.values()), "shifts_px": shifts.tolist(),
               "pooled": peak(pooled, shifts), "pooled_grid": pooled.round(5).tolist(),
               "by_object": {str(o): {"instances": len(g), **peak(np.mean(g, axis=0), shifts)}

@@ -39,7 +39,7 @@ import numpy as np
 from flextrack.formats import bop
 from flextrack.geometry import metrics, se3, so3
 from flextrack.geometry.camera import PinholeCamera, project_model
-from flextrack.provenance import provenance
+from flextrack.provenance import command_line, provenance
 
 DEFAULT_LEVELS = "10:5,20:10,none"
 
@@ -375,8 +375,7 @@ def run(args: argparse.Namespace) -> int:
     levels = parse_levels(args.levels)
     present = sorted({f.obj_id for f in frames})
     result = {
-        "command": "flextrack evaluate prior " + " ".join(sys.argv[3:] if sys.argv[1:3] == ["evaluate", "prior"]
-                                                          else sys.argv[1:]),
+        "command": command_line("evaluate", "prior"),
         **provenance(**{k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}),
         "seeds": {"seed": args.seed,
                   "rng": "numpy default_rng([seed, sigma in um, sigma in mdeg, draw, scene, frame, instance])"},

@@ -24,7 +24,7 @@ from estimators.registry import EstimatorRegistry
 from flextrack.formats import sequence as sequence_io
 from flextrack.formats.sequence import Sequence
 from flextrack.runners.backends import NOISY_R_DEG, NOISY_T_M, GrpcBackend, InProcessBackend
-from flextrack.runners.exchange import GYRO_SCALE_KEY, TIMING_EXTRINSIC_KEY
+from flextrack.runners.exchange import SIMULATOR_DECLARATIONS
 from flextrack.runners.replay import ReplayOptions, replay
 from flextrack.runners.results import TrackRecord
 from flextrack.runners.session import model_vertices
@@ -69,18 +69,15 @@ class GridCell:
         return SimSpec(self.motion, self.level, self.fps, self.seed, self.duration_s, imu)
 
 
-SIMULATOR_DECLARES = (TIMING_EXTRINSIC_KEY, GYRO_SCALE_KEY)  # sequence.yaml keys the generator writes for the tracker
-
-
 def simulated(cache: Path, spec: SimSpec) -> Sequence:
     """The sequence of `spec`, generated into `cache` the first time (no rendering: oracles need no pixels), and
-    again when the cached one predates what the generator now declares for the tracker (`SIMULATOR_DECLARES`):
+    again when the cached one predates what the generator now declares for the tracker (`SIMULATOR_DECLARATIONS`):
     without it the tracker would take the simulator's exact IMU and timing for a phone's."""
     from flextrack.simulator.generate import generate_sequence
 
     root = cache / spec.name
     cached = sequence_io.load(root) if (root / "rig.yaml").is_file() else None
-    if cached is not None and all(key in cached.meta for key in SIMULATOR_DECLARES):
+    if cached is not None and all(key in cached.meta for key in SIMULATOR_DECLARATIONS):
         return cached
     generate_sequence(spec.motion, spec.level, root, duration_s=spec.duration_s, fps=spec.fps, seed=spec.seed,
                       imu_profile=spec.imu)

@@ -27,6 +27,11 @@ from flextrack.v1 import pose_estimation_pb2 as pb
 TIMING_EXTRINSIC_KEY = "timing_extrinsic_std"
 # ... and for its gyro's scale-and-misalignment error, a fraction per entry (FilterOptions.gyroscope_scale_error).
 GYRO_SCALE_KEY = "gyroscope_scale_error"
+# What the simulator declares (flextrack.simulator.generate writes it): its extrinsic, frame times and gyro are exact.
+SIMULATOR_DECLARATIONS = {TIMING_EXTRINSIC_KEY: {"rotation_deg": 0.0, "translation_m": 0.0}, GYRO_SCALE_KEY: 0.0}
+# The filter option each declaration sets (`declared_filter_options`).
+DECLARED_BY = {"answer_floor_rotation_deg": TIMING_EXTRINSIC_KEY, "answer_floor_translation_m": TIMING_EXTRINSIC_KEY,
+               "gyroscope_scale_error": GYRO_SCALE_KEY}
 
 
 def declared_floor(seq: Sequence) -> tuple[float, float] | None:
@@ -65,25 +70,32 @@ def declared_gyro_scale(seq: Sequence) -> float | None:
     return value
 
 
+def declared_filter_options(seq: Sequence) -> dict[str, float]:
+    """The filter options the sequence's declarations set (`DECLARED_BY`), by name; none for what it leaves
+    undeclared (the tracker's defaults, a real recording's). ValueError for a malformed declaration."""
+    out: dict[str, float] = {}
+    floor = declared_floor(seq)
+    if floor is not None:
+        out["answer_floor_rotation_deg"], out["answer_floor_translation_m"] = floor
+    scale = declared_gyro_scale(seq)
+    if scale is not None:
+        out["gyroscope_scale_error"] = scale
+    return out
+
+
 def tracker_for(seq: Sequence, vertices_O: np.ndarray, options: TrackerOptions | None,
                 record_error_dynamics: bool = True):
-    """The tracker core the options name; the filter's IMU densities are the sequence's (imu0/sensor.yaml), so are
-    its answer floor and gyro scale error where the sequence declares them (`declared_floor`,
-    `declared_gyro_scale`), and it keeps its error dynamics for the
-    NEES interval unless told not to (the timing experiment)."""
+    """The tracker core the options name; the filter's IMU densities are the sequence's (imu0/sensor.yaml), so is
+    what the sequence declares (`declared_filter_options`), and it keeps its error dynamics for the NEES interval
+    unless told not to (the timing experiment)."""
     options = options or TrackerOptions()
     if options.fusion == "filter":
         n = seq.imu_noise
         fo = replace(
             options.filter, gyroscope_noise_density=n.gyroscope_noise_density,
             gyroscope_random_walk=n.gyroscope_random_walk, accelerometer_noise_density=n.accelerometer_noise_density,
-            accelerometer_random_walk=n.accelerometer_random_walk, record_error_dynamics=record_error_dynamics)
-        floor = declared_floor(seq)
-        if floor is not None:
-            fo = replace(fo, answer_floor_rotation_deg=floor[0], answer_floor_translation_m=floor[1])
-        scale = declared_gyro_scale(seq)
-        if scale is not None:
-            fo = replace(fo, gyroscope_scale_error=scale)
+            accelerometer_random_walk=n.accelerometer_random_walk, record_error_dynamics=record_error_dynamics,
+            **declared_filter_options(seq))
         options = replace(options, filter=fo)
     return create_tracker(options, seq.camera, seq.T_BC, bbox_corners(vertices_O))
 

@@ -228,14 +228,11 @@ def run(args) -> int:
             in_process=args.in_process, config=args.config, server=args.server, objects=tuple(args.objects),
             frames=args.frames or args.backend not in ORACLES)
         options = tracker_options(args)
-        floor_set = sorted(name for name in overrides(args.set)[1] if name.startswith("answer_floor_"))
-        if floor_set and exchange.declared_floor(loaded) is not None:  # it would be replaced by the declaration
-            raise ValueError(f"--set filter.{floor_set[0]}: {args.sequence} declares what it cannot know exactly "
-                             f"(sequence.yaml {exchange.TIMING_EXTRINSIC_KEY}), which the tracker's answer floor "
+        clash = sorted(set(overrides(args.set)[1]) & set(exchange.declared_filter_options(loaded)))
+        if clash:  # it would be replaced by the declaration
+            raise ValueError(f"--set filter.{clash[0]}: {args.sequence} declares what it cannot know exactly "
+                             f"(sequence.yaml {exchange.DECLARED_BY[clash[0]]}), which the tracker's {clash[0]} "
                              "is set from; edit it there")
-        if "gyroscope_scale_error" in overrides(args.set)[1] and exchange.declared_gyro_scale(loaded) is not None:
-            raise ValueError(f"--set filter.gyroscope_scale_error: {args.sequence} declares its gyro's scale error "
-                             f"(sequence.yaml {exchange.GYRO_SCALE_KEY}); edit it there")
         registry = None if args.server else session.registry_for(loaded, spec)
         kind = estimator_kind(args.backend, registry, args.server)
         if kind is None and registry is not None:

@@ -19,7 +19,7 @@ from flextrack.formats.euroc import GroundTruth
 from flextrack.formats.sequence import Sequence
 from flextrack.geometry import se3, so3
 from flextrack.geometry.camera import PinholeCamera
-from flextrack.runners.exchange import GYRO_SCALE_KEY, TIMING_EXTRINSIC_KEY
+from flextrack.runners.exchange import SIMULATOR_DECLARATIONS
 from flextrack.simulator import default_object, imu
 from flextrack.simulator.render import load_model
 from flextrack.simulator.sequence_writer import bop_obj_id_of, install_model, write_sequence
@@ -106,9 +106,8 @@ def generate_sequence(motion: str, level: str, out_dir: str | Path, *, duration_
                          "end": int(record.imu.t_ns[-1])},
             "imu_bias": {"gyro_turn_on": record.bias_gyro[0].tolist(), "accel_turn_on": record.bias_accel[0].tolist()},
             "statistics": stats,
-            # what the tracker's answer floor stands for is known exactly here (flextrack.runners.exchange)
-            TIMING_EXTRINSIC_KEY: {"rotation_deg": 0.0, "translation_m": 0.0},
-            GYRO_SCALE_KEY: 0.0,  # its gyro reads the true rate, scaled by nothing
+            # what the tracker's answer floor and gyro scale error stand for is exact here (flextrack.runners.exchange)
+            **SIMULATOR_DECLARATIONS,
         },
     )
     write_sequence(seq, imu_extra={
