@@ -189,8 +189,9 @@ class ContourRefiner:
         self.open_faces = np.zeros(len(self.faces), bool)  # the faces along open edges: always drawn
         self.open_faces[uses[mesh.faces_unique_edges].min(axis=1) == 1] = True
 
-    def _contour(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, shape: tuple[int, int]):
-        """Contour points (M, 2) in image px, their outward unit normals and their 3D points (object frame)."""
+    def outline(self, K: np.ndarray, R: np.ndarray, t: np.ndarray, shape: tuple[int, int]):
+        """The object's outline at pose (R, t): contour points (M, 2) in image px, their outward unit normals and
+        their 3D points (object frame); None when it is out of view or too small."""
         x, y, z = R @ self.vertices_T + t[:, None]  # camera frame, one contiguous row per axis
         if z.min() <= 1e-3:
             return None
@@ -222,16 +223,16 @@ class ContourRefiner:
             return None
         # `points` of the outline's pixels, evenly spaced, with the tangent over +-3 raster px and the outward
         # normal. The points are the outline pixels' centres: OpenCV's fill is inclusive, and the true outline
-        # lies about there, not half a raster px further out.
+        # lies about there, not half a raster px further out. Outward is told by the contour's turning sense (its
+        # signed area), not by probing the mask: only the faces along the outline are drawn, so the mask is a
+        # band, and a probe inwards could land in its empty middle.
         pick = np.linspace(0, len(c), self.config.points, endpoint=False).astype(int)
         tangent = c[(pick + 3) % len(c)] - c[pick - 3]
-        normal = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
+        area2 = float(np.sum(c[:, 0] * np.roll(c[:, 1], -1) - np.roll(c[:, 0], -1) * c[:, 1]))
+        turn = 1.0 if area2 > 0 else -1.0
+        normal = np.stack([turn * tangent[:, 1], -turn * tangent[:, 0]], axis=1)
         normal /= np.maximum(np.sqrt(_dot2(normal, normal)), 1e-9)[:, None]
         c = c[pick]
-        probe = np.round(c + 2 * normal).astype(int)
-        inside = mask[np.minimum(np.maximum(probe[:, 1], 0), size[1] - 1),
-                      np.minimum(np.maximum(probe[:, 0], 0), size[0] - 1)] > 0
-        normal[inside] *= -1
         pts = (c + 0.5) / OVERSAMPLE + lo
         # 3D point under each contour point: its ray at the depth of the nearest projected vertex
         z = z[_nearest(uv, pts, lo)]
@@ -289,7 +290,7 @@ class ContourRefiner:
         prior = _project(K, R, t, self.keypoints)
         used, fit, gn = 0, 0.0, None
         for round_ in range(cfg.rounds):
-            contour = self._contour(K, R, t, image.shape[:2])
+            contour = self.outline(K, R, t, image.shape[:2])
             if contour is None:
                 break
             pts, normals, points_O = contour

@@ -523,17 +523,26 @@ def render_lmo_gt_offset(folder: Path) -> str:
     """`flextrack evaluate gt-offset`: where the meshes' vertex colours put the objects in the frames, against the
     ground truth's projection."""
     data = json.loads((folder / "lmo_gt_offset.json").read_text())
-    p = data["pooled"]
-    lines = ["| object | instances | best shift right, down (px) | colour correlation there | at the truth |",
-             "|---|---:|---|---:|---:|",
+    p, e = data["pooled"], data["edges"]["pooled"]
+
+    def edge_cells(x: dict) -> str:
+        return f"{x['du_px']:+.2f}, {x['dv_px']:+.2f} | {x['wider_px']:+.2f}, {x['taller_px']:+.2f}"
+
+    lines = [("| object | instances | vertex colours: best shift right, down (px) | correlation there | at the truth "
+              "| edges: outline right, down (px) | edges: wider, taller (px) |"),
+             "|---|---:|---|---:|---:|---|---|",
              (f"| **pooled** | {data['instances']} | **{p['du_px']:+.1f}, {p['dv_px']:+.1f}** | {p['ncc_peak']:.3f} | "
-             f"{p['ncc_at_truth']:.3f} |")]
+              f"{p['ncc_at_truth']:.3f} | **{e['du_px']:+.2f} +- {e['du_se_px']:.2f}, {e['dv_px']:+.2f} +- "
+              f"{e['dv_se_px']:.2f}** | {e['wider_px']:+.2f}, {e['taller_px']:+.2f} |")]
     for obj, b in data["by_object"].items():
         lines.append(f"| {obj} | {b['instances']} | {b['du_px']:+.1f}, {b['dv_px']:+.1f} | {b['ncc_peak']:.3f} | "
-                     f"{b['ncc_at_truth']:.3f} |")
+                     f"{b['ncc_at_truth']:.3f} | {edge_cells(data['edges']['by_object'][obj])} |")
     reach = max(data["shifts_px"])
-    return "\n".join([*lines, "", (f"Shifts tried: every {data['shifts_px'][1] - data['shifts_px'][0]:g} px up to "
-                      f"{reach:g} px each way; a peak at {reach:g} px is at the grid's edge (no peak within it)."),
+    return "\n".join([*lines, "", (f"Vertex colours: shifts tried every {data['shifts_px'][1] - data['shifts_px'][0]:g} px "
+                      f"up to {reach:g} px each way; a peak at {reach:g} px is at the grid's edge (no peak within it). "
+                      f"Edges: the strongest colour step within {reach:g} px along each outward normal of the truth's "
+                      "outline, its mean offset per side and instance; the outline's shift is half the difference of "
+                      "opposite sides (+- its standard error over the instances), its growth their sum."),
                       provenance_line(data, data.get("command")), f"Files: `{RESULTS_DIR.as_posix()}/{folder.name}/`."])
 
 

@@ -19,9 +19,10 @@ def colour_field(u, v):
                      128 + 100 * np.cos((u + v) / 8.0)], axis=-1)
 
 
-def bop_folder(root, shift_px, coloured=True):
+def bop_folder(root, shift_px, coloured=True, shaded=False):
     """One sphere (mm) at 0.5 m; the image is the colour field, the vertices carry the field's colour where the
-    image shows them: at the truth's projection plus `shift_px`."""
+    image shows them: at the truth's projection plus `shift_px`. `shaded`: the sphere's silhouette, moved by the
+    same shift, drawn darker than the field around it (an outline for the edge measure)."""
     mesh = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
     T = np.eye(4)
     T[:3, 3] = [0.01, -0.02, 0.5]
@@ -35,7 +36,14 @@ def bop_folder(root, shift_px, coloured=True):
     scene = root / "test" / "000002"
     (scene / "rgb").mkdir(parents=True)
     vv, uu = np.mgrid[0:480, 0:640].astype(float)
-    image = np.clip(colour_field(uu, vv), 0, 255).astype(np.uint8)
+    field = colour_field(uu, vv)
+    if shaded:  # the projected sphere's outline (its vertices' convex hull) darkened inside, each pixel by the
+        # share of it the hull covers (drawn 8 times finer: OpenCV's fill takes in every pixel the outline touches)
+        fine = np.zeros((480 * 8, 640 * 8), np.uint8)
+        cv2.fillConvexPoly(fine, cv2.convexHull(np.round((uv * 8 + 3.5) * 16).astype(np.int32)), 255, cv2.LINE_8, 4)
+        cover = cv2.resize(fine, (640, 480), interpolation=cv2.INTER_AREA).astype(float) / 255.0
+        field = field * (1.0 - 0.6 * cover[..., None])
+    image = np.clip(field, 0, 255).astype(np.uint8)
     cv2.imwrite(str(scene / "rgb" / "000000.png"), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
     (scene / "scene_gt.json").write_text(json.dumps({"0": [{"obj_id": 1, "cam_R_m2c": T[:3, :3].ravel().tolist(),
                                                              "cam_t_m2c": (T[:3, 3] * 1000).tolist()}]}))
@@ -59,6 +67,19 @@ def test_the_shift_between_truth_and_image_is_found(tmp_path):
     assert (result["pooled"]["du_px"], result["pooled"]["dv_px"]) == (1.0, -1.5)
     assert result["pooled"]["ncc_peak"] > 0.99 > result["pooled"]["ncc_at_truth"]
     assert result["options"]["min_visib"] == 0.8 and "date" in result  # the run's provenance
+
+
+def test_the_frames_edges_place_the_outline_against_the_truths(tmp_path):
+    """The outline drawn 1 px right and 1.5 px up of the truth's: the edges along the truth's outline say so
+    (within a fifth of a pixel: the drawn outline is the vertices' hull, the measured one the mesh's), and that
+    it is no larger."""
+    root = bop_folder(tmp_path / "bop", shift_px=np.array([1.0, -1.5]), shaded=True)
+    out = tmp_path / "offset.json"
+    assert gt_offset.run(args_for(root, out)) == 0
+    edges = json.loads(out.read_text())["edges"]["pooled"]
+    assert abs(edges["du_px"] - 1.0) < 0.2 and abs(edges["dv_px"] + 1.5) < 0.2
+    assert abs(edges["wider_px"]) < 0.4 and abs(edges["taller_px"]) < 0.4
+    assert all(edges["sides"][side]["instances"] == 1 for side in ("top", "bottom", "left", "right"))
 
 
 def test_a_mesh_without_vertex_colours_is_a_clear_error(tmp_path, capsys):

@@ -311,6 +311,20 @@ def test_the_edge_search_samples_as_the_whole_image_would(rendered):
         assert np.array_equal(_sample(rgb, xy), expected), (lo, hi)
 
 
+def test_the_outline_normals_point_outwards(registry, rendered):
+    """The refinement draws only the faces along the outline (a band, not the filled silhouette); its normals take
+    their sense from the contour's turning, so a step along one leaves the object and a step against it enters it
+    (when a probe of the band decided, four in five pointed inwards)."""
+    obj = registry.get("default")
+    refiner = ContourRefiner(obj.vertices, obj.faces, obj.keypoints)
+    for rgb, T_gt in rendered:
+        points, normals, _ = refiner.outline(CAMERA.K, T_gt[:3, :3], T_gt[:3, 3], rgb.shape[:2])
+        silhouette = np.zeros(rgb.shape[:2], np.uint8)
+        cv2.fillPoly(silhouette, [np.round(points).astype(np.int32)], 1)
+        out, into = (np.round(points + s * 3.0 * normals).astype(int) for s in (1, -1))
+        assert np.mean((silhouette[out[:, 1], out[:, 0]] == 0) & (silhouette[into[:, 1], into[:, 0]] == 1)) > 0.95
+
+
 def test_the_contour_points_nearest_vertices_are_scipys():
     """The refinement's nearest-vertex search (FLANN's k-d tree in float32, its two nearest re-ranked in
     float64) finds the vertices scipy's cKDTree finds, where float32 alone cannot tell them apart: each
