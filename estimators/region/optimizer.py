@@ -30,6 +30,7 @@ from estimators.region.correspondence import (
     LineModel,
     Lines,
     contour_distributions,
+    edge_weighted,
     project_lines,
 )
 from estimators.region.histograms import ColourHistograms
@@ -46,7 +47,7 @@ class OptimizerConfig:
     line_weight: float = 1.0  # multiplies every line's information (1 / variance)
     damping_rotation: float = 10000.0  # per-step Tikhonov, per rad^2 (tuned on the real cat, docs/region.md)
     damping_translation: float = 300000.0  # per m^2
-    covariance_inflation: float = 350.0  # fitted on the even frames of LM-O: mean NEES 6 at 10 mm / 5 deg (docs/region.md)
+    covariance_inflation: float = 180.0  # fitted on the even frames of LM-O: mean NEES 6 at 10 mm / 5 deg (docs/region.md)
     # the inflation's factor by the answer's confidence (knots of a piecewise-linear curve, flat beyond the ends):
     # fitted on LM-O's even frames, where the mean NEES at a flat 350 fell from 11.7 at confidence 0.3-0.45 to 3.2 above
     # 0.75 (docs/results/region_lmo as stored at 69e45e2),
@@ -117,6 +118,7 @@ def optimize(frame: CellImage, K: np.ndarray, model: ViewpointModel, hist: Colou
             if lines is None:
                 return None
             mean, var, informative = contour_distributions(frame, logits, lines, scale, cfg.line_model)
+            var = edge_weighted(frame, lines, mean, var, scale, cfg.line_model)
             J = line_jacobians(lines, K, t).compress(informative, axis=1)
             Jw = J * (cfg.line_weight / var.compress(informative))
             H_image = Jw @ J.T
