@@ -195,3 +195,36 @@ def test_the_pose_error_keeps_tiny_rotations():
         e = pose_error(so3.exp(v) @ R, t + [0.001, 0, 0], R, t)
         np.testing.assert_allclose(e[:3], v, rtol=1e-7, atol=1e-15)
         np.testing.assert_allclose(e[3:], [0.001, 0, 0])
+
+
+def test_the_edge_colours_are_the_nearest_pixels_with_the_border_replicated():
+    """`edge_weighted` reads the pixel nearest to each point (floor(x + 0.5), as `sample_pixels`), the region's
+    border standing in for whatever lies beyond it."""
+    rng = np.random.default_rng(6)
+    pixels = rng.integers(0, 256, (90, 120, 3)).astype(np.uint8)
+    frame = CellImage(np.zeros((90, 120), np.int32), 200, 100, pixels)
+    points = rng.uniform([180, 80], [340, 210], (500, 2))  # inside the region and beyond each side
+    x = np.clip(np.floor(points[:, 0] + 0.5).astype(int) - 200, 0, 119)
+    y = np.clip(np.floor(points[:, 1] + 0.5).astype(int) - 100, 0, 89)
+    assert ((x == 0) | (x == 119)).any() and ((y == 0) | (y == 89)).any()  # the border was read beyond the region
+    np.testing.assert_array_equal(corr._colours_at(frame, points), pixels[y, x].astype(np.float32))
+
+
+def test_a_contour_estimate_on_no_edge_is_less_sure():
+    """Lines across a sharp colour step keep their variance within a few per cent; the same lines on a flat patch
+    have it grown (1 + (edge_step / s)^2, s -> 0: by orders of magnitude); off (edge_step 0), nothing changes; the
+    coarse scales are left alone."""
+    pixels = np.full((100, 100, 3), 60, np.uint8)
+    pixels[:, 50:] = 200  # a vertical edge between x = 49 and 50 (region coordinates)
+    frame = CellImage(np.zeros((100, 100), np.int32), 0, 0, pixels)
+    m = 20
+    lines = Lines(np.column_stack([np.full(m, 49.5), np.linspace(20, 80, m)]), np.tile([1.0, 0.0], (m, 1)),
+                  np.zeros((m, 3)), np.full(m, 30.0), np.full(m, 30.0))
+    var = np.full(m, 0.5)
+    cfg = LineModel()
+    on_edge = corr.edge_weighted(frame, lines, np.zeros(m), var, 1, cfg)
+    flat = corr.edge_weighted(frame, lines, np.full(m, -20.0), var, 1, cfg)  # estimates 20 px inside: no step
+    assert np.all(on_edge < 1.2 * var) and np.all(flat > 100 * var)
+    np.testing.assert_array_equal(corr.edge_weighted(frame, lines, np.full(m, -20.0), var, 1,
+                                                     LineModel(edge_step=0.0)), var)
+    np.testing.assert_array_equal(corr.edge_weighted(frame, lines, np.full(m, -20.0), var, 4, cfg), var)

@@ -23,7 +23,7 @@ from estimators.region.viewpoint_model import ViewpointModel, cached_viewpoint_m
 from estimators.session_store import SessionStore
 from flextrack.geometry import se3, so3
 
-PARAMS = {"scales", "iterations_per_scale", "coarse_iterations", "half_segments", "line_weight", "damping_rotation",
+PARAMS = {"scales", "iterations_per_scale", "coarse_iterations", "half_segments", "edge_step", "line_weight", "damping_rotation",
           "damping_translation", "covariance_inflation", "inflation_by_confidence", "default_prior_sigma_m", "default_prior_sigma_deg",
           "bins", "learning_rate", "max_sessions", "max_session_age_s", "views_subdivisions", "contour_points",
           "cache_dir", "min_confidence", "min_confidence_coarse", "histogram_px", "refit_scales", "refits", "margin_factors", "session_weight",
@@ -83,7 +83,8 @@ class RegionEstimator(Estimator):
         spec.check_params(PARAMS)
         p = dict(spec.params)
         ids = spec.object_ids or spec.objects.ids()
-        line = LineModel(half_segments=int(p.pop("half_segments", LineModel.half_segments)))
+        line = LineModel(half_segments=int(p.pop("half_segments", LineModel.half_segments)),
+                         edge_step=float(p.pop("edge_step", LineModel.edge_step)))
         opt = OptimizerConfig(line_model=line, **{k: p.pop(k) for k in list(p) if k in {
             "iterations_per_scale", "coarse_iterations", "line_weight", "damping_rotation", "damping_translation",
             "covariance_inflation"}})
