@@ -212,7 +212,7 @@ def edge_weighted(frame: CellImage, lines: Lines, mean: np.ndarray, var: np.ndar
     s)^2, s the RGB distance between the pixels 1 px outside and 1 px inside the estimate. The colours say
     roughly where the outline is; a real outline is also a step in the image, and an estimate on none (a
     shaded rim, the background's colours close to the object's) is the one most likely off (docs/region.md:
-    on LM-O, 10 mm / 5 deg, 58.0 % -> 61.1 % under 5 px, the held-out odd frames 56.2 % -> 60.5 %). Only at
+    on LM-O, 10 mm / 5 deg, 58.0 % -> 62.3 % under 5 px, the held-out odd frames 56.2 % -> 62.3 %). Only at
     scales up to `edge_scale_px`."""
     if cfg.edge_step <= 0 or scale > cfg.edge_scale_px or frame.pixels is None:
         return var

@@ -10,8 +10,8 @@ correlation's peak is where the images put the objects relative to the truth.
 A second, independent measure: the frames' own edges. Along the truth's outline (the mesh's, drawn at the true
 pose), the strongest colour step within `--reach-px` along each outward normal; per instance the mean offset of
 the lines that face up, down, left and right. Half the difference of opposite sides is where the frames'
-outline sits against the truth's (a shift moves them the same way), half their sum how much larger it is (a
-size or depth difference, or a blurred rim, moves them apart). The scanned colours weigh the interior, where
+outline sits against the truth's (a shift moves them the same way), their sum how much wider or taller it is
+(a size or depth difference, or a blurred rim, moves them apart). The scanned colours weigh the interior, where
 lighting differs from the scan's; the edges weigh only the outline.
 """
 
