@@ -16,7 +16,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "nees": ("flextrack.evaluation.nees_calibration",
              "are the estimators' pose covariances calibrated? mean NEES of held-out answers vs chi2(6)"),
     "gt-offset": ("flextrack.evaluation.gt_offset",
-                  "does a BOP dataset's ground truth sit where its images show the objects? (meshes' vertex colours)"),
+                  "does a BOP dataset's ground truth sit where its images show the objects? (vertex colours, edges)"),
 }
 
 

@@ -41,7 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--split", default="test", help="the BOP split folder under --bop")
     parser.add_argument("--min-visib", type=float, default=0.8,
                         help="instances at least this visible (occluders' pixels would read as the object's)")
-    parser.add_argument("--reach-px", type=float, default=3.0, help="largest image shift tried, each axis")
+    parser.add_argument("--reach-px", type=float, default=3.0, help="largest image shift tried, each axis; how far along each normal an edge is looked for")
     parser.add_argument("--step-px", type=float, default=0.5, help="the grid's step")
     parser.add_argument("--out", type=Path, default=None, help="result JSON (default: print only)")
 
