@@ -47,7 +47,8 @@ _Q_EVERY = 20  # samples between updates of Q from the in-use noise estimate
 # replaces it.
 _RAISE_ABOVE = 1.2
 _Q_INDEX = np.array(_flat((k, k) for k in (0, 1, 2, 6, 7, 8, 9, 10, 11, 12, 13, 14)))
-_HORIZON_S = (0.1, 0.01, 0.5)  # the scale error's T: before the first answer interval, and its bounds
+_HORIZON_START_S = 0.1  # the scale error's T before the first answer interval
+_HORIZON_BOUNDS_S = (0.01, 0.5)  # ... and the span an interval is clipped to
 _HORIZON_WEIGHT = 0.1  # each answer interval's weight in T's running mean
 
 
@@ -71,7 +72,7 @@ class CovariancePropagator:
         self._phi = _IDENTITY.copy()
         self._phi_dt = 0.0  # the interval the +-dt entries of _phi hold
         self._scale2 = options.gyroscope_scale_error ** 2
-        self._horizon_s = _HORIZON_S[0]  # T, the interval the IMU alone carries the orientation
+        self._horizon_s = _HORIZON_START_S  # T, the interval the IMU alone carries the orientation
         self._set_q(*self._densities)
 
     def _set_q(self, gyro_density: float, accel_density: float) -> None:
@@ -117,7 +118,7 @@ class CovariancePropagator:
     def note_answer_interval(self, dt: float) -> None:
         """One more span (s) the IMU alone carried the pose, from an answer's capture to the next one's arrival,
         measured across: the scale error's horizon T."""
-        lo, hi = _HORIZON_S[1], _HORIZON_S[2]
+        lo, hi = _HORIZON_BOUNDS_S
         self._horizon_s += _HORIZON_WEIGHT * (min(max(dt, lo), hi) - self._horizon_s)
 
     @property

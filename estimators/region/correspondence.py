@@ -216,9 +216,9 @@ def edge_weighted(frame: CellImage, lines: Lines, mean: np.ndarray, var: np.ndar
     scales up to `edge_scale_px`."""
     if cfg.edge_step <= 0 or scale > cfg.edge_scale_px or frame.pixels is None:
         return var
-    along = np.concatenate([mean + 1.0, mean - 1.0])[:, None]
-    colours = _colours_at(frame, np.concatenate([lines.centers, lines.centers])
-                          + along * np.concatenate([lines.normals, lines.normals]))
+    outside = lines.centers + (mean + 1.0)[:, None] * lines.normals
+    inside = lines.centers + (mean - 1.0)[:, None] * lines.normals
+    colours = _colours_at(frame, np.concatenate([outside, inside]))  # one read for both
     d = colours[:len(mean)] - colours[len(mean):]
     step2 = np.maximum(np.einsum("ij,ij->i", d, d), 1e-6)
     return var * (1.0 + cfg.edge_step * cfg.edge_step / step2)

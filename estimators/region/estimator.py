@@ -292,7 +292,8 @@ class RegionEstimator(Estimator):
         fits = [self._fit(frame, shape, K, model, hist, R0, t0, information, prior_px, self.margin_factors, s)
                 for s in starts]
         # from a coarse prior a weak fit is as often far off as near: it is refused, not answered (docs/region.md)
-        needed = self.min_confidence_coarse if len(starts) > 1 else self.min_confidence
+        coarse = len(starts) > 1
+        needed = self.min_confidence_coarse if coarse else self.min_confidence
         best = max(fits, key=lambda fit: fit[0])
         if best[1] < self.retry_below and self.retry_margin_factors:
             # lost, most likely from histograms learned off the prior's outline: again, further off it
@@ -322,9 +323,9 @@ class RegionEstimator(Estimator):
         stage["total"] = (time.perf_counter() - start) * 1e3
         message = "" if not fresh else "new session: colour histograms started from the prior"
         if confidence < needed:
-            coarse = " needed from a coarse prior: keep lining up" if len(starts) > 1 else ""
+            advice = " needed from a coarse prior: keep lining up" if coarse else ""
             return EstimateOutput(Status.OBJECT_NOT_FOUND, message=f"the colours do not fit the outline "
-                                  f"(confidence {confidence:.2f} < {needed}{coarse})", confidence=confidence,
+                                  f"(confidence {confidence:.2f} < {needed}{advice})", confidence=confidence,
                                   stage_ms=stage)
         covariance = answer_covariance(result, self.optimizer, confidence) + self._fits_scatter(fits, best)
         nis = self.prior_nis(result, R0, t0, cov, covariance)

@@ -46,23 +46,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=None, help="result JSON (default: print only)")
 
 
-def coloured_vertices(ply: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Vertices (m), their normals and RGB colours of a BOP mesh (mm); ValueError when it has no colours."""
-    from flextrack.simulator.render import load_model
-
-    mesh = load_model(ply)
+def coloured_vertices(mesh, ply: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vertices (m), their normals and RGB colours of the BOP mesh read from `ply` (`load_model`); ValueError when
+    it has none."""
     if getattr(mesh.visual, "kind", None) != "vertex":  # trimesh makes up grey ones for a mesh without
         raise ValueError(f"{ply} has no vertex colours")
     return (np.asarray(mesh.vertices), np.asarray(mesh.vertex_normals),
             np.asarray(mesh.visual.vertex_colors)[:, :3].astype(np.float32))
 
 
-def outline_of(ply: Path):
-    """The mesh's outline at a pose, as the pvnet refinement draws it (`ContourRefiner.outline`)."""
+def outline_of(mesh):
+    """The mesh's outline at a pose, as the pvnet refinement draws it (`ContourRefiner.outline`; no keypoints:
+    only the outline is used)."""
     from estimators.contour_refine import ContourRefineConfig, ContourRefiner
-    from flextrack.simulator.render import load_model
 
-    mesh = load_model(ply)
     return ContourRefiner(np.asarray(mesh.vertices), np.asarray(mesh.faces), np.zeros((1, 3)),
                           ContourRefineConfig(points=200))
 
@@ -133,6 +130,8 @@ def peak(grid: np.ndarray, shifts: np.ndarray) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    from flextrack.simulator.render import load_model
+
     prog = "flextrack evaluate gt-offset"
     if not (args.bop / args.split).is_dir():
         print(f"{prog}: no BOP split folder {args.bop / args.split}", file=sys.stderr)
@@ -142,8 +141,10 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         obj_ids = object_ids(args.obj_id, args.bop / "models")
-        vertices = {o: coloured_vertices(args.bop / "models" / f"obj_{o:06d}.ply") for o in obj_ids}
-        refiners = {o: outline_of(args.bop / "models" / f"obj_{o:06d}.ply") for o in obj_ids}
+        plys = {o: args.bop / "models" / f"obj_{o:06d}.ply" for o in obj_ids}
+        meshes = {o: load_model(ply) for o, ply in plys.items()}  # once, for both measures
+        vertices = {o: coloured_vertices(mesh, plys[o]) for o, mesh in meshes.items()}
+        refiners = {o: outline_of(mesh) for o, mesh in meshes.items()}
     except (ValueError, OSError) as exc:
         print(f"{prog}: {exc}", file=sys.stderr)
         return 2
