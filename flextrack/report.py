@@ -751,11 +751,14 @@ def render_recording(folder: Path) -> str:
         (f"`{data.name}` (real phone IMU, motion-capture truth, a virtual object, the noisy oracle); errors on the "
          "frames in view called FINE; the share of in-view frames called FINE; the filter's camera-IMU time offset "
          f"at the end with its sigma, against {xcorr:.2f} ms from the gyroscope cross-correlated with the truth's "
-         "angular rate (`flextrack calibrate imu`)."),
+         "angular rate (`flextrack calibrate imu`); the frames in view within 50 ms before to 300 ms after a moment "
+         "the truth jumped where the gyro did not are set aside (counted in view, not scored), the worst FINE one "
+         "among them beside."),
         "", *_cells(rows, [("variant", "variant", ""), ("2D px", "proj_px", ".2f"), ("FINE / in view", "fine_pct", ""),
                            ("NEES", "nees_mean", ".1f"), ("worst FINE px", "worst_fine_px", ".1f"),
                            ("jitter px", "jitter_px", ".2f"), ("offset ms", "time_offset_ms", ".2f"),
-                           ("sigma ms", "time_offset_sigma_ms", ".2f")]),
+                           ("sigma ms", "time_offset_sigma_ms", ".2f"), ("set aside", "set_aside_frames", ""),
+                           ("worst FINE px set aside", "worst_set_aside_px", ".1f")]),
         "", provenance_line(prov, f"flextrack experiment euroc --data {data.as_posix()} --out out/{folder.name}")
         + f" Files: `{RESULTS_DIR.as_posix()}/{folder.name}/`."])
 

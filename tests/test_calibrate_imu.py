@@ -52,3 +52,33 @@ def test_the_white_noise_of_a_simulated_phone_is_read_back(tmp_path):
     assert found.gyroscope_noise_density == pytest.approx(6.63e-5, rel=0.15)
     assert found.accelerometer_noise_density == pytest.approx(7.35e-4, rel=0.15)
     assert np.isnan(found.time_offset_ms) and found.gaps == 0 and found.truth_jumps == []
+
+
+def test_a_jump_of_the_truth_is_found_and_its_frames_set_aside(tmp_path):
+    """The motion capture's orientation stepping 1 deg where the gyro did not (a marker swap) is found at its
+    moment, and `experiment euroc` sets aside the frames in view from just before it to 0.3 s after: scored
+    there, a tracker following the IMU would be scored against a pose the device never had."""
+    from types import SimpleNamespace
+
+    from flextrack.experiments import euroc as experiment
+    from flextrack.geometry import so3
+    from flextrack.testing.euroc_recording import write_euroc_recording
+
+    data = write_euroc_recording(tmp_path / "walk", tmp_path / "work")
+    assert len(calibration.truth_jumps(data, 0.0)) == 0
+    gt = euroc.read_groundtruth(data / "groundtruth.csv")
+    at = int(gt.t_ns[0] + 1.5e9)  # mid-way through its 3 s
+    step = so3.exp(np.radians([1.0, 0.0, 0.0]))
+    after = gt.t_ns >= at
+    q = gt.q_WB.copy()
+    q[after] = [so3.quat_from_matrix(so3.matrix_from_quat(x) @ step) for x in gt.q_WB[after]]
+    euroc.write_groundtruth(data / "groundtruth.csv", euroc.GroundTruth(gt.t_ns, gt.p_WB, q, gt.v_WB, gt.bias_gyro,
+                                                                        gt.bias_accel))
+    jumps = calibration.truth_jumps(data, 0.0)
+    assert len(jumps) == 1 and abs(jumps[0] - at * 1e-9) < 0.01
+    times = gt.t_ns[0] + np.arange(0, 3e9, 1e9 / 30).astype(np.int64)
+    ids = np.arange(len(times))
+    seq = SimpleNamespace(frame_times_ns=times, frame_ids=ids, gt_T_CO={int(i): np.eye(4) for i in ids[::2]})
+    aside = experiment.doubtful_truth(seq, data, 0.0)
+    expected = {int(i) for i, t in zip(ids[::2], times[::2]) if -0.05e9 <= t - jumps[0] * 1e9 <= 0.3e9}
+    assert aside == expected and 4 <= len(aside) <= 6

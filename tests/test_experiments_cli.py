@@ -97,8 +97,10 @@ def test_euroc_writes_the_agreed_csv(tmp_path):
     assert main(["experiment", "euroc", "--out", str(out), "--in-process"]) == 0
     rows = _csv(out / "euroc.csv")
     assert list(rows[0]) == ["variant", "pos_mm", "ori_deg", "proj_px", "jitter_px", "nees_mean", "worst_fine_px",
-                             "fine_share", "time_offset_ms", "time_offset_sigma_ms", "offset_xcorr_ms"]
+                             "fine_share", "time_offset_ms", "time_offset_sigma_ms", "offset_xcorr_ms",
+                             "set_aside_frames", "worst_set_aside_px"]
     assert all(0 < float(r["fine_share"]) <= 1 for r in rows) and abs(float(rows[0]["offset_xcorr_ms"])) < 2
+    assert all(r["set_aside_frames"] == "0" for r in rows)  # the Vicon's truth never jumps where the IMU did not
     filter_row = rows[-1]
     assert abs(float(filter_row["time_offset_ms"])) < 10 and 0 < float(filter_row["time_offset_sigma_ms"]) < 20
     assert [r["variant"] for r in rows] == ["full", "bscm_off", "filter"]

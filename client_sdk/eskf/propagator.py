@@ -61,6 +61,7 @@ class CovariancePropagator:
         self._densities = (k * options.gyroscope_noise_density, k * options.accelerometer_noise_density)
         self._walks = (k * options.gyroscope_random_walk, k * options.accelerometer_random_walk)
         self._adapt = options.adapt_imu_noise
+        self._max_gap_s = options.max_imu_gap_s
         alpha = 1.0 / max(options.noise_window_samples, 1)
         # n2 <- (1 - alpha) n2 + alpha seen, _Q_EVERY times: the old n2's factor and each new value's
         self._decay = (1.0 - alpha) ** _Q_EVERY
@@ -90,7 +91,11 @@ class CovariancePropagator:
         shows far more than its datasheet's n, and the filter must believe it.
 
         The running mean (one exponential average per sample) is only read when Q is set, every
-        _Q_EVERY samples, so it is brought up to date then, for all of them at once."""
+        _Q_EVERY samples, so it is brought up to date then, for all of them at once. A second difference
+        across a gap of the stream (an interval over `max_imu_gap_s`) measures the motion during the gap, not
+        the noise: it counts as the estimate so far (`nexus5_ar_a`: one across its 23.7 s gap raised the
+        accelerometer's density ~40-fold, and the pose stayed too uncertain for FINE for 2 s after the samples
+        came back)."""
         if not self._adapt:
             return
         pending = self._pending
@@ -103,6 +108,10 @@ class CovariancePropagator:
         d = s[3:, 1:] - s[2:-1, 1:] - s[1:-2, 1:] + s[:-3, 1:]  # twice the means' second differences
         d2 = d * d
         seen = np.stack([d2[:, 0:3].sum(axis=1), d2[:, 3:6].sum(axis=1)]) * (dt / 12.0)  # -> n^2 per sample
+        steps = np.diff(s[:, 0]) * NS
+        across = np.maximum(np.maximum(steps[:-2], steps[1:-1]), steps[2:]) > self._max_gap_s
+        if across.any():
+            seen[:, across] = self._n2[:, None]
         self._n2 = self._n2 * self._decay + seen @ self._weights  # the averages, sample by sample, at once
         self._seen = tuple(est if est > _RAISE_ABOVE * base else base
                            for est, base in zip(np.sqrt(self._n2).tolist(), self._densities))

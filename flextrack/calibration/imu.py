@@ -229,9 +229,7 @@ def calibrate(data: Path) -> ImuCalibration:
     m = max(1, round(10.0 / nominal))
     k_rw = float(np.mean(allan_deviation(bias[inside], nominal, m)) / np.sqrt(m * nominal / 3.0))
     r, before, after = lever_arm(imu, gt, offset)
-    disagree = np.linalg.norm(resid, axis=1) * inside
-    jumps = np.flatnonzero(disagree > GLITCH * np.median(disagree[inside]))
-    starts = jumps[np.r_[True, np.diff(t[jumps]) > 0.5]] if len(jumps) else jumps
+    jumps = _jump_starts(t, resid, inside)
     return ImuCalibration(
         rate_hz=1.0 / nominal, gaps=int(np.sum(steps > 5 * nominal)), longest_gap_s=float(steps.max()),
         time_offset_ms=found_offset * 1e3, time_offset_peak=peak, still_s=float(still.sum() * nominal),
@@ -239,7 +237,28 @@ def calibrate(data: Path) -> ImuCalibration:
         accelerometer_noise_density=float(np.mean(a_ad) * np.sqrt(nominal)), noise_from=source,
         gyroscope_random_walk=k_rw, gyro_residual_rms=float(np.sqrt(np.mean(gyro_res ** 2) * 3)),
         accel_residual_rms=before, accel_residual_rms_lever=after, lever_arm_m=tuple(float(x) for x in r),
-        truth_jumps=[round(float(t[i] - t[0]), 2) for i in starts])
+        truth_jumps=[round(float(x - t[0]), 2) for x in jumps])
+
+
+def truth_jumps(data: Path, offset_s: float) -> np.ndarray:
+    """The moments (the IMU's clock, s) the truth jumped where the gyro did not, in the recording in `data`
+    with the camera-IMU offset `offset_s` (`time_offset`): a tracker scored on the truth there is scored
+    against a pose that was never the device's (`flextrack experiment euroc` sets those frames aside)."""
+    imu, gt = recording(data)
+    t = imu.t_ns * 1e-9
+    if len(gt.t_ns) < 3:
+        return np.zeros(0)
+    tw, w_gt = body_rates(gt)
+    inside = (t > tw[0] + offset_s + 0.5) & (t < tw[-1] + offset_s - 0.5)
+    return _jump_starts(t, imu.gyro - _on_grid(tw + offset_s, w_gt, t), inside) if inside.any() else np.zeros(0)
+
+
+def _jump_starts(t: np.ndarray, resid: np.ndarray, inside: np.ndarray) -> np.ndarray:
+    """Times where |gyro - the truth's rate| passed GLITCH x its median inside the truth's span, the first of
+    each run (runs 0.5 s apart)."""
+    disagree = np.linalg.norm(resid, axis=1) * inside
+    jumps = np.flatnonzero(disagree > GLITCH * np.median(disagree[inside]))
+    return t[jumps[np.r_[True, np.diff(t[jumps]) > 0.5]]] if len(jumps) else np.zeros(0)
 
 
 def _file(data: Path, *names: str) -> Path:

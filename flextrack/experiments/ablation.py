@@ -41,10 +41,11 @@ def run(out: Path, seed: int = 0, duration_s: float = 30.0, fps: int = 120, in_p
     if data is not None:
         from flextrack.experiments import euroc
         from flextrack.formats import sequence as sequence_io
-        from flextrack.runners.scoring import in_view_only
+        from flextrack.runners.scoring import account, in_view_only
 
         fps = euroc.FPS
         recording = in_view_only(sequence_io.load(euroc.converted(out, data, fps, euroc.OBJECT_SCALE, None, None)))
+        doubtful = euroc.doubtful_truth(recording, data, euroc.xcorr_offset_ms(data))
         programs = [(euroc.labels(recording)[0], "-")]
     else:
         programs = [(m, lv) for m in motions for lv in levels]
@@ -64,8 +65,9 @@ def run(out: Path, seed: int = 0, duration_s: float = 30.0, fps: int = 120, in_p
                         rows.append([variant, backend, motion, level, fps, s.proj_px, s.jitter_px, s.nees_mean,
                                      s.worst_fine_px])
                     else:  # on a recording: the frames in view called FINE, as experiment euroc scores them
-                        _, _, px, jitter, nees = euroc.on_fine(record, [r for r in record.scored() if r.status == "FINE"])
-                        rows.append([variant, backend, motion, level, fps, px, jitter, nees, s.worst_fine_px])
+                        _, _, px, jitter, nees = euroc.on_fine(record, euroc.fine_frames(record, doubtful))
+                        worst = account(record, fine_only=True, set_aside=doubtful).worst_fine_px
+                        rows.append([variant, backend, motion, level, fps, px, jitter, nees, worst])
                     if (motion, level) == shown and variant in ("full", "bscm_pia_off"):
                         closeup[f"{variant}, {backend}"] = _series(record)
                     bar.set_postfix_str(f"{motion}/{level} {variant} {backend}: {s.proj_px:.2f} px")

@@ -5,7 +5,9 @@ into the image; the others (and frames without ground truth) are *out of view* a
 frames in view, those before the tracker's first pose are *initialising*; the rest have an estimate, which
 the tracker calls FINE or not (TRACKING_LOST, WRONG_POSE: *lost*). `flextrack track` scores every in-view
 frame with an estimate; `flextrack experiment euroc` only the FINE ones (the paper's rule). `Accounting`
-counts each group, names the worst FINE frame, and says in one line why a run scored nothing.
+counts each group, names the worst FINE frame, and says in one line why a run scored nothing. Frames whose
+ground truth is known to be wrong (a recording's motion capture jumping where the IMU did not) can be *set
+aside*: counted in view, never scored.
 """
 
 from __future__ import annotations
@@ -53,6 +55,8 @@ class Accounting:
     worst_fine_px: float = math.nan
     requests: int = 0
     responses: int = 0
+    set_aside: int = 0  # in view, but their ground truth doubtful: not scored
+    worst_set_aside_px: float = math.nan  # the worst FINE frame among those, for the record
 
     def describe(self) -> str:
         """Two lines: the counts, and what was not scored and why."""
@@ -61,6 +65,8 @@ class Accounting:
         worst = (f"; worst FINE frame {self.worst_fine_frame}: {self.worst_fine_px:.2f} px"
                  if self.worst_fine_frame is not None else "")
         not_scored = [f"{self.out_of_view} out of view", f"{self.initialising} initialising"]
+        if self.set_aside:
+            not_scored.append(f"{self.set_aside} set aside (ground truth doubtful)")
         if self.scored_rule != "in view, with an estimate":
             not_scored.append(f"{lost} lost{lost_detail}")
         return (f"{self.frames} frames: {self.in_view} with the object in view, {self.fine} of them FINE; "
@@ -91,14 +97,17 @@ class Accounting:
                 "the tracker lost the object wherever it was in view")
 
 
-def account(record, fine_only: bool = False) -> Accounting:
+def account(record, fine_only: bool = False, set_aside: frozenset[int] = frozenset()) -> Accounting:
     """Count a TrackRecord's frames (its rows' ground truth already limited to in-view frames, see
-    `in_view_only`); `fine_only`: score only the FINE frames."""
+    `in_view_only`); `fine_only`: score only the FINE frames; `set_aside`: frame ids whose ground truth is
+    doubtful, counted in view but not scored."""
     rows = record.rows
     record.scored()  # fills in the errors
     in_view_rows = [r for r in rows if r.T_gt is not None]
     estimated = [r for r in in_view_rows if r.T_CO is not None]
-    fine = [r for r in estimated if r.status == "FINE"]
+    fine_all = [r for r in estimated if r.status == "FINE"]
+    fine = [r for r in fine_all if r.frame_id not in set_aside]
+    aside_fine = [r.proj_px for r in fine_all if r.frame_id in set_aside]
     lost: dict[str, int] = {}
     for r in estimated:
         if r.status != "FINE":
@@ -106,9 +115,11 @@ def account(record, fine_only: bool = False) -> Accounting:
     worst = max(fine, key=lambda r: r.proj_px) if fine else None
     return Accounting(
         frames=len(rows), in_view=len(in_view_rows), out_of_view=len(rows) - len(in_view_rows),
-        initialising=len(in_view_rows) - len(estimated), estimated=len(estimated), fine=len(fine), lost=lost,
-        scored=len(fine) if fine_only else len(estimated),
+        initialising=len(in_view_rows) - len(estimated), estimated=len(estimated), fine=len(fine_all), lost=lost,
+        scored=len(fine) if fine_only else len(estimated) - sum(r.frame_id in set_aside for r in estimated),
         scored_rule="in view and FINE" if fine_only else "in view, with an estimate",
         worst_fine_frame=None if worst is None else worst.frame_id,
         worst_fine_px=math.nan if worst is None else worst.proj_px,
-        requests=record.requests, responses=record.responses)
+        requests=record.requests, responses=record.responses,
+        set_aside=sum(r.frame_id in set_aside for r in in_view_rows),
+        worst_set_aside_px=max(aside_fine) if aside_fine else math.nan)
