@@ -160,6 +160,54 @@ def test_a_sequence_s_declared_gyro_scale_error_reaches_the_filter_and_is_checke
             declared_gyro_scale(dataclasses.replace(seq, meta={GYRO_SCALE_KEY: bad}))
 
 
+def test_a_frame_reaches_the_tracker_its_declared_latency_after_capture_stamped_with_its_capture_time(phone_seq):
+    """The simulator's frames reach the tracker at their capture time (it declares 0); a recording that declares
+    nothing gets a phone camera pipeline's 50 ms: the IMU samples up to 50 ms past the frame are then in, and
+    the frame is still stamped, scored and asked about at its capture time. A bad declaration is refused."""
+    from flextrack.runners.exchange import FRAME_LATENCY_KEY, frame_latency_ns
+
+    class Watch:
+        """The tracker, with the newest IMU time it had been given at each frame."""
+
+        def __init__(self, inner):
+            self.inner, self.seen, self.newest = inner, [], None
+
+        def add_imu(self, t_ns, gyro, accel):
+            self.newest = t_ns
+            return self.inner.add_imu(t_ns, gyro, accel)
+
+        def add_frame(self, t_ns):
+            self.seen.append((t_ns, self.newest))
+            return self.inner.add_frame(t_ns)
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+    registry = oracle_registry([phone_seq.root], noise_seed=5)
+    vertices = session.model_vertices(phone_seq)
+    options = ReplayOptions(network=NetworkOptions(seed=5), estimator="noisy")
+    period = int(np.median(np.diff(phone_seq.imu.t_ns)))
+    for meta, latency in ((phone_seq.meta, 0), ({}, 50_000_000), ({FRAME_LATENCY_KEY: 20}, 20_000_000)):
+        seq = dataclasses.replace(phone_seq, meta=meta)
+        assert frame_latency_ns(seq) == latency
+        watched = {}
+
+        def watch(tracker, watched=watched):
+            watched["tracker"] = Watch(tracker)
+            return watched["tracker"]
+
+        record = replay(seq, InProcessBackend(registry, options.network), vertices, TrackerOptions(), options,
+                        wrap=watch)
+        seen = watched["tracker"].seen
+        assert [t for t, _ in seen] == [r.t_ns for r in record.rows] == [int(t) for t in seq.frame_times_ns]
+        ahead = np.array([newest - t for t, newest in seen[1:] if t + latency <= seq.imu.t_ns[-1]])  # IMU left
+        assert np.all(ahead <= latency) and np.all(ahead > latency - period)
+        assert record.responses > 10
+    for bad in (-1, 1000, "x", float("nan")):
+        with pytest.raises(ValueError, match=FRAME_LATENCY_KEY):
+            frame_latency_ns(dataclasses.replace(phone_seq, meta={FRAME_LATENCY_KEY: bad}))
+
+
 def test_the_filter_s_error_dynamics_change_nothing_and_give_the_nees_interval(phone_seq):
     registry = oracle_registry([phone_seq.root], noise_seed=5)
     vertices = session.model_vertices(phone_seq)

@@ -27,8 +27,16 @@ from flextrack.v1 import pose_estimation_pb2 as pb
 TIMING_EXTRINSIC_KEY = "timing_extrinsic_std"
 # ... and for its gyro's scale-and-misalignment error, a fraction per entry (FilterOptions.gyroscope_scale_error).
 GYRO_SCALE_KEY = "gyroscope_scale_error"
-# What the simulator declares (flextrack.simulator.generate writes it): its extrinsic, frame times and gyro are exact.
-SIMULATOR_DECLARATIONS = {TIMING_EXTRINSIC_KEY: {"rotation_deg": 0.0, "translation_m": 0.0}, GYRO_SCALE_KEY: 0.0}
+# ... and for how long after its capture a frame reaches the tracker (ms): a phone's camera pipeline (exposure,
+# readout, the ISP) hands the app a frame tens of ms after its timestamp, by when the IMU samples that cover the
+# frame's time have arrived (an IMU clock ahead of the camera's by ~16 ms on the Nexus 5 recordings, 40 ms on
+# another phone, then needs no extrapolation past the newest sample: docs/own-data.md).
+FRAME_LATENCY_KEY = "frame_latency_ms"
+DEFAULT_FRAME_LATENCY_MS = 50.0  # a recording that declares nothing: the low end of a phone's 50-100 ms
+# What the simulator declares (flextrack.simulator.generate writes it): its extrinsic, frame times and gyro are
+# exact, and its frames reach the tracker at their capture time (the paper's experiments).
+SIMULATOR_DECLARATIONS = {TIMING_EXTRINSIC_KEY: {"rotation_deg": 0.0, "translation_m": 0.0}, GYRO_SCALE_KEY: 0.0,
+                          FRAME_LATENCY_KEY: 0.0}
 # The filter option each declaration sets (`declared_filter_options`).
 DECLARED_BY = {"answer_floor_rotation_deg": TIMING_EXTRINSIC_KEY, "answer_floor_translation_m": TIMING_EXTRINSIC_KEY,
                "gyroscope_scale_error": GYRO_SCALE_KEY}
@@ -68,6 +76,21 @@ def declared_gyro_scale(seq: Sequence) -> float | None:
         raise ValueError(f"{seq.root / 'sequence.yaml'}: {GYRO_SCALE_KEY} must be a fraction in [0, 0.5), "
                          f"got {declared!r}")
     return value
+
+
+def frame_latency_ns(seq: Sequence) -> int:
+    """How long after its capture time a frame of `seq` reaches the tracker, ns: what the sequence declares under
+    FRAME_LATENCY_KEY (the simulator: 0), else DEFAULT_FRAME_LATENCY_MS (a real recording: a phone's camera
+    pipeline). ValueError for a declaration that is not a number of ms in [0, 1000)."""
+    declared = seq.meta.get(FRAME_LATENCY_KEY, DEFAULT_FRAME_LATENCY_MS)
+    try:
+        value = float(declared)
+    except (TypeError, ValueError):
+        value = math.nan
+    if not 0.0 <= value < 1000.0:
+        raise ValueError(f"{seq.root / 'sequence.yaml'}: {FRAME_LATENCY_KEY} must be a number of ms in [0, 1000), "
+                         f"got {declared!r}")
+    return round(value * 1e6)
 
 
 def declared_filter_options(seq: Sequence) -> dict[str, float]:

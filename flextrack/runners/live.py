@@ -25,7 +25,7 @@ from client_sdk.network_model import NetworkOptions
 from client_sdk.slowdown import PIXEL2_FACTOR, Slowdown
 from client_sdk.transport import TrackClient, TransportOptions
 from flextrack.formats.sequence import Sequence
-from flextrack.runners.exchange import apply_answer, finish, frame_request, tracker_for
+from flextrack.runners.exchange import apply_answer, finish, frame_latency_ns, frame_request, tracker_for
 from flextrack.runners.payload import stand_in_jpeg
 from flextrack.runners.results import RowStore, TrackRecord
 from flextrack.v1 import pose_estimation_pb2 as pb
@@ -57,9 +57,11 @@ class Progress:
 
 
 def _timeline(seq: Sequence) -> list[tuple[int, int, int]]:
-    """(t_ns, kind, index) of every IMU sample (kind 0) and frame (kind 1), in time order."""
+    """(t_ns, kind, index) of every IMU sample (kind 0) and frame (kind 1), in the order they reach the tracker: a
+    frame the sequence's frame latency after its capture time (`exchange.frame_latency_ns`)."""
+    latency = frame_latency_ns(seq)
     imu = [(int(t), 0, i) for i, t in enumerate(seq.imu.t_ns)]
-    frames = [(int(t), 1, i) for i, t in enumerate(seq.frame_times_ns)]
+    frames = [(int(t) + latency, 1, i) for i, t in enumerate(seq.frame_times_ns)]
     return sorted(imu + frames)
 
 
@@ -114,6 +116,7 @@ def run_live(seq: Sequence, address: str, vertices_O: np.ndarray, tracker_option
                     tracker.add_imu(t_ns, seq.imu.gyro[i], seq.imu.accel[i])
                 continue
             frame_id = int(seq.frame_ids[i])
+            t_ns = int(seq.frame_times_ns[i])  # stamped with its capture time
             with slowdown.stretch():
                 result = tracker.add_frame(t_ns)
                 state = tracker.state_bytes() if result.request is not None else b""

@@ -1,7 +1,9 @@
 """Replay a sequence through the tracker in virtual time: fast, and bit-identical for one seed.
 
 One event queue (heapq) holds the IMU samples, the frames and the backend responses, ordered by
-virtual time; at equal times IMU first, then responses, then frames. Nothing is measured:
+virtual time; at equal times IMU first, then responses, then frames. A frame reaches the tracker the
+sequence's frame latency after its capture time (`exchange.frame_latency_ns`: a phone's camera pipeline;
+the simulator's frames none), stamped with its capture time. Nothing is measured:
 
 - a frame's request leaves after the (stretched, modelled) PIM cost;
 - it reaches the backend after the uplink delay, the backend takes its modelled compute time, the
@@ -27,7 +29,7 @@ from client_sdk.network_model import NetworkOptions
 from client_sdk.slowdown import PIXEL2_FACTOR, FrontendCosts, Slowdown
 from flextrack.formats.sequence import Sequence
 from flextrack.geometry.camera import bbox_corners
-from flextrack.runners.exchange import apply_answer, finish, frame_request, tracker_for
+from flextrack.runners.exchange import apply_answer, finish, frame_latency_ns, frame_request, tracker_for
 from flextrack.runners.live import Progress
 from flextrack.runners.payload import stand_in_jpeg
 from flextrack.runners.results import TrackRecord
@@ -71,8 +73,9 @@ def replay(seq: Sequence, backend, vertices_O: np.ndarray, tracker_options: Trac
     imu = seq.imu
     for i, t in enumerate(imu.t_ns):
         events.append((int(t), _IMU, i, None))
+    latency = frame_latency_ns(seq)
     for i, (fid, t) in enumerate(zip(seq.frame_ids, seq.frame_times_ns)):
-        events.append((int(t), _FRAME, i, int(fid)))
+        events.append((int(t) + latency, _FRAME, i, int(fid)))
     heapq.heapify(events)
     n = len(events)
     t_first, t_last = (int(seq.frame_times_ns[0]), int(seq.frame_times_ns[-1])) if len(seq.frame_times_ns) else (0, 0)
@@ -81,11 +84,13 @@ def replay(seq: Sequence, backend, vertices_O: np.ndarray, tracker_options: Trac
         t_ns, kind, i, payload = heapq.heappop(events)
         if kind == _IMU:
             tracker.add_imu(t_ns, imu.gyro[i], imu.accel[i])
-        elif kind == _FRAME:
-            result = tracker.add_frame(t_ns)
-            record.add(payload, t_ns, result.status.name, result.T_CO, seq.gt_T_CO.get(payload), result.covariance)
+        elif kind == _FRAME:  # t_ns: when it reaches the tracker; the frame is stamped with its capture time
+            captured = int(seq.frame_times_ns[i])
+            result = tracker.add_frame(captured)
+            record.add(payload, captured, result.status.name, result.T_CO, seq.gt_T_CO.get(payload), result.covariance)
             if progress is not None:
-                progress(Progress((t_ns - t_first) * 1e-9, (t_last - t_first) * 1e-9, record, result.status.name, True))
+                progress(Progress((captured - t_first) * 1e-9, (t_last - t_first) * 1e-9, record, result.status.name,
+                                  True))
             if result.request is not None:
                 crop = None if frame_jpeg is None else request_crop(tracker, result.request, corners_O, options.crop)
                 request = frame_request(seq, tracker, payload, result.request.frame_t_ns,
