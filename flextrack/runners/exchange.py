@@ -65,32 +65,29 @@ def declared_gyro_scale(seq: Sequence) -> float | None:
     """The gyro scale-and-misalignment error the sequence declares under GYRO_SCALE_KEY (the simulator: 0, its
     gyro has none), or None when it declares nothing (a real recording: the tracker's default, a phone's).
     ValueError for a declaration that is not a number in [0, 0.5)."""
-    declared = seq.meta.get(GYRO_SCALE_KEY)
-    if declared is None:
-        return None
-    try:
-        value = float(declared)
-    except (TypeError, ValueError):
-        value = math.nan
-    if not 0.0 <= value < 0.5:
-        raise ValueError(f"{seq.root / 'sequence.yaml'}: {GYRO_SCALE_KEY} must be a fraction in [0, 0.5), "
-                         f"got {declared!r}")
-    return value
+    return _declared_number(seq, GYRO_SCALE_KEY, 0.5, "a fraction")
 
 
 def frame_latency_ns(seq: Sequence) -> int:
     """How long after its capture time a frame of `seq` reaches the tracker, ns: what the sequence declares under
     FRAME_LATENCY_KEY (the simulator: 0), else DEFAULT_FRAME_LATENCY_MS (a real recording: a phone's camera
     pipeline). ValueError for a declaration that is not a number of ms in [0, 1000)."""
-    declared = seq.meta.get(FRAME_LATENCY_KEY, DEFAULT_FRAME_LATENCY_MS)
+    declared = _declared_number(seq, FRAME_LATENCY_KEY, 1000.0, "a number of ms")
+    return round((DEFAULT_FRAME_LATENCY_MS if declared is None else declared) * 1e6)
+
+
+def _declared_number(seq: Sequence, key: str, below: float, what: str) -> float | None:
+    """sequence.yaml's number under `key`, None when absent; ValueError unless it lies in [0, below)."""
+    declared = seq.meta.get(key)
+    if declared is None:
+        return None
     try:
         value = float(declared)
     except (TypeError, ValueError):
         value = math.nan
-    if not 0.0 <= value < 1000.0:
-        raise ValueError(f"{seq.root / 'sequence.yaml'}: {FRAME_LATENCY_KEY} must be a number of ms in [0, 1000), "
-                         f"got {declared!r}")
-    return round(value * 1e6)
+    if not 0.0 <= value < below:
+        raise ValueError(f"{seq.root / 'sequence.yaml'}: {key} must be {what} in [0, {below:g}), got {declared!r}")
+    return value
 
 
 def declared_filter_options(seq: Sequence) -> dict[str, float]:
