@@ -217,7 +217,8 @@ def test_serve_config_that_is_not_toml(tmp_path, capsys):
     ["track", "SEQ", "--slowdown", "inf"], ["track", "SEQ", "--backend-ms", "-1000"],
     ["experiment", "table2", "--duration", "inf"], ["experiment", "euroc", "--fps", "inf"],
     ["experiment", "euroc", "--fps", "0"], ["loadtest", "--target", "127.0.0.1:1", "--payload-kb", "-5"],
-    ["convert-euroc", "--fps", "nan"], ["evaluate", "nees", "--pnp-noise-px", "inf"],
+    ["convert-euroc", "--fps", "nan"], ["convert-euroc", "--frame-latency", "-5"],
+    ["evaluate", "nees", "--pnp-noise-px", "inf"],
 ])
 def test_bad_numbers_get_one_line_and_exit_2(argv, seq, tmp_path, capsys):
     """Issue 31 item 7: inf, nan, negative sizes and rates no machine keeps up with, refused before any work."""

@@ -12,6 +12,7 @@ import pytest
 
 from flextrack.cli import main
 from flextrack.formats.sequence import load
+from flextrack.runners.exchange import frame_latency_ns
 from flextrack.runners.scoring import in_view
 from flextrack.simulator.euroc_convert import convert_euroc
 from flextrack.testing.euroc_recording import IMU_NAME, write_euroc_recording
@@ -52,12 +53,14 @@ def sequence(recording, tmp_path_factory):
 def test_convert_euroc_reports_rate_imu_and_placement(recording, sequence, capsys):
     data, position = recording
     assert main(["convert-euroc", "--euroc", str(data), "--out", str(sequence.parent / "again"), "--no-plots",
-                 f"--object-position={position}"]) == 0
+                 f"--object-position={position}", "--frame-latency", "20"]) == 0
     out = capsys.readouterr().out
     assert "at 30 FPS" in out and IMU_NAME in out and "object (given) at" in out  # the camera file's 30 Hz
     assert (sequence / "plots" / "trajectory.png").stat().st_size > 10_000  # the placement drawn
     seq = load(sequence)
     assert seq.meta["placement"]["how"] == "given" and seq.meta["converter"]["imu"] == IMU_NAME
+    # a recording declares no frame latency unless told: a phone's 50 ms; told, its own
+    assert frame_latency_ns(seq) == 50_000_000 and frame_latency_ns(load(sequence.parent / "again")) == 20_000_000
     with pytest.raises(SystemExit):
         main(["convert-euroc", "--help"])
     help_text = capsys.readouterr().out

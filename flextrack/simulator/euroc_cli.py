@@ -30,6 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--object-position", type=xyz, default=None, metavar="X,Y,Z",
                         help="put the object's centre here, in the recording's world frame, m (default: placed "
                              "automatically, see --object-distance)")
+    parser.add_argument("--frame-latency", type=float, default=None, metavar="MS",
+                        help="how long after its timestamp the device's camera hands a frame to the app, ms, declared "
+                             "in sequence.yaml for the replay (default: not declared, a phone's 50)")
     parser.add_argument("--no-plots", action="store_true", help="skip the trajectory / IMU pictures")
 
 
@@ -54,7 +57,8 @@ def run(args: argparse.Namespace) -> int:
     euroc = args.euroc or DEFAULT_DATA
     problem = numbers_problem([("--fps", args.fps, 0, 1000), ("--max-distance", args.max_distance, 0, 100),
                                ("--object-scale", args.object_scale, 0, 1000),
-                               ("--object-distance", args.object_distance, 0, 100)]) or out_folder_problem(args.out)
+                               ("--object-distance", args.object_distance, 0, 100),
+                               ("--frame-latency", args.frame_latency, 0, 999, True)]) or out_folder_problem(args.out)
     if not euroc.is_dir():
         problem = problem or (f"--euroc {euroc}: no such folder" + ("" if args.euroc else " (the default: the "
                               "shared data beside the checkout)") + "; give the folder of a EuRoC recording")
@@ -65,7 +69,8 @@ def run(args: argparse.Namespace) -> int:
         root = convert_euroc(euroc, args.out, fps=args.fps,
                              object_path=None if args.object == "default" else args.object, object_id=args.object_id,
                              max_distance_m=args.max_distance, object_scale=args.object_scale,
-                             object_position=args.object_position, object_distance_m=args.object_distance)
+                             object_position=args.object_position, object_distance_m=args.object_distance,
+                             frame_latency_ms=args.frame_latency)
     except (ValueError, FileNotFoundError) as exc:
         print(f"flextrack convert-euroc: {exc}", file=sys.stderr)
         return 2

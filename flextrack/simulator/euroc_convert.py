@@ -32,6 +32,7 @@ from flextrack.formats import euroc, kalibr
 from flextrack.formats.sequence import Sequence
 from flextrack.geometry import se3, so3
 from flextrack.geometry.camera import PinholeCamera
+from flextrack.runners.exchange import FRAME_LATENCY_KEY
 from flextrack.simulator import default_object
 from flextrack.simulator.render import load_model
 from flextrack.simulator.sequence_writer import bop_obj_id_of, install_model, write_sequence
@@ -98,11 +99,12 @@ def convert_euroc(euroc_dir: str | Path, out_dir: str | Path, *, fps: float | No
                   object_path: str | Path | None = None, object_id: str | None = None,
                   max_distance_m: float = MAX_DISTANCE_M, object_scale: float = OBJECT_SCALE,
                   object_position: tuple[float, float, float] | None = None,
-                  object_distance_m: float | None = None) -> Path:
+                  object_distance_m: float | None = None, frame_latency_ms: float | None = None) -> Path:
     """Write the sequence folder `out_dir` from a EuRoC folder holding imu0.csv, groundtruth.csv,
     cam0_sensor.yaml and imu0_sensor.yaml (or the mav0/ layout: imu0/data.csv, ...). The object goes where
     `place_object` finds the cameras look most (at `object_distance_m` from them when given), or at
-    `object_position` (world, m) when given."""
+    `object_position` (world, m) when given; `frame_latency_ms`, when given, is declared for the replay
+    (`runners.exchange.FRAME_LATENCY_KEY`; undeclared, a phone's default)."""
     src = Path(euroc_dir)
     paths = _find_files(src)
     imu = euroc.read_imu(paths["imu"])
@@ -170,6 +172,7 @@ def convert_euroc(euroc_dir: str | Path, out_dir: str | Path, *, fps: float | No
                           "centre_W": placement.centre_W.tolist(), "visible_fraction": placement.visible_fraction,
                           "distance_m_min_median_max": list(placement.distance_m)},
             "times_ns": {"imu_start": int(imu.t_ns[0]), "end": int(last)},
+            **({} if frame_latency_ms is None else {FRAME_LATENCY_KEY: float(frame_latency_ms)}),
         },
     )
     write_sequence(seq)
