@@ -741,6 +741,8 @@ def render_demo(folder: Path) -> str:
 def render_recording(folder: Path) -> str:
     """`experiment euroc --data` on a hand-held recording: errors, FINE share, time offset against the
     cross-correlation's."""
+    from flextrack.experiments.euroc import DOUBTFUL_AFTER_S, DOUBTFUL_BEFORE_S
+
     rows = read_csv(folder / "euroc.csv")
     prov = read_provenance(folder / "euroc.json")
     data = Path(prov.get("options", {}).get("data") or "?")
@@ -751,9 +753,9 @@ def render_recording(folder: Path) -> str:
         (f"`{data.name}` (real phone IMU, motion-capture truth, a virtual object, the noisy oracle); errors on the "
          "frames in view called FINE; the share of in-view frames called FINE; the filter's camera-IMU time offset "
          f"at the end with its sigma, against {xcorr:.2f} ms from the gyroscope cross-correlated with the truth's "
-         "angular rate (`flextrack calibrate imu`); the frames in view within 50 ms before to 300 ms after a moment "
-         "the truth jumped where the gyro did not are set aside (counted in view, not scored), the worst FINE one "
-         "among them beside."),
+         f"angular rate (`flextrack calibrate imu`); the frames in view within {DOUBTFUL_BEFORE_S * 1e3:.0f} ms before "
+         f"to {DOUBTFUL_AFTER_S * 1e3:.0f} ms after a moment the truth jumped where the gyro did not are set aside "
+         "(counted in view, not scored), the worst FINE one among them beside."),
         "", *_cells(rows, [("variant", "variant", ""), ("2D px", "proj_px", ".2f"), ("FINE / in view", "fine_pct", ""),
                            ("NEES", "nees_mean", ".1f"), ("worst FINE px", "worst_fine_px", ".1f"),
                            ("jitter px", "jitter_px", ".2f"), ("offset ms", "time_offset_ms", ".2f"),
