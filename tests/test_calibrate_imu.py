@@ -65,7 +65,7 @@ def test_a_jump_of_the_truth_is_found_and_its_frames_set_aside(tmp_path):
     from flextrack.testing.euroc_recording import write_euroc_recording
 
     data = write_euroc_recording(tmp_path / "walk", tmp_path / "work")
-    assert len(calibration.truth_jumps(data, 0.0)) == 0
+    assert len(calibration.truth_jumps(*calibration.recording(data), 0.0)) == 0
     gt = euroc.read_groundtruth(data / "groundtruth.csv")
     at = int(gt.t_ns[0] + 1.5e9)  # mid-way through its 3 s
     step = so3.exp(np.radians([1.0, 0.0, 0.0]))
@@ -74,11 +74,11 @@ def test_a_jump_of_the_truth_is_found_and_its_frames_set_aside(tmp_path):
     q[after] = [so3.quat_from_matrix(so3.matrix_from_quat(x) @ step) for x in gt.q_WB[after]]
     euroc.write_groundtruth(data / "groundtruth.csv", euroc.GroundTruth(gt.t_ns, gt.p_WB, q, gt.v_WB, gt.bias_gyro,
                                                                         gt.bias_accel))
-    jumps = calibration.truth_jumps(data, 0.0)
+    jumps = calibration.truth_jumps(*calibration.recording(data), 0.0)
     assert len(jumps) == 1 and abs(jumps[0] - at * 1e-9) < 0.01
     times = gt.t_ns[0] + np.arange(0, 3e9, 1e9 / 30).astype(np.int64)
     ids = np.arange(len(times))
     seq = SimpleNamespace(frame_times_ns=times, frame_ids=ids, gt_T_CO={int(i): np.eye(4) for i in ids[::2]})
-    aside = experiment.doubtful_truth(seq, data, 0.0)
+    aside = experiment.doubtful_truth(seq, jumps, 0.0)
     expected = {int(i) for i, t in zip(ids[::2], times[::2]) if -0.05e9 <= t - jumps[0] * 1e9 <= 0.3e9}
     assert aside == expected and 4 <= len(aside) <= 6

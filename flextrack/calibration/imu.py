@@ -240,11 +240,10 @@ def calibrate(data: Path) -> ImuCalibration:
         truth_jumps=[round(float(x - t[0]), 2) for x in jumps])
 
 
-def truth_jumps(data: Path, offset_s: float) -> np.ndarray:
-    """The moments (the IMU's clock, s) the truth jumped where the gyro did not, in the recording in `data`
-    with the camera-IMU offset `offset_s` (`time_offset`): a tracker scored on the truth there is scored
-    against a pose that was never the device's (`flextrack experiment euroc` sets those frames aside)."""
-    imu, gt = recording(data)
+def truth_jumps(imu: euroc.ImuData, gt: euroc.GroundTruth, offset_s: float) -> np.ndarray:
+    """The moments (the IMU's clock, s) the truth jumped where the gyro did not, with the camera-IMU offset
+    `offset_s` (`time_offset`): a tracker scored on the truth there is scored against a pose that was never the
+    device's (`flextrack experiment euroc` sets those frames aside)."""
     t = imu.t_ns * 1e-9
     if len(gt.t_ns) < 3:
         return np.zeros(0)

@@ -45,7 +45,8 @@ def run(out: Path, seed: int = 0, duration_s: float = 30.0, fps: int = 120, in_p
 
         fps = euroc.FPS
         recording = in_view_only(sequence_io.load(euroc.converted(out, data, fps, euroc.OBJECT_SCALE, None, None)))
-        doubtful = euroc.doubtful_truth(recording, data, euroc.xcorr_offset_ms(data))
+        xcorr_ms, jumps_s = euroc.truth_timing(data)
+        doubtful = euroc.doubtful_truth(recording, jumps_s, xcorr_ms)
         programs = [(euroc.labels(recording)[0], "-")]
     else:
         programs = [(m, lv) for m in motions for lv in levels]

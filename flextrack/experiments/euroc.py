@@ -56,8 +56,8 @@ def run(out: Path, data: Path = DEFAULT_DATA, seed: int = 0, in_process: bool = 
     if not data.is_dir():
         raise FileNotFoundError(f"EuRoC data folder {data} not found (see shared/data/SOURCES.md); pass --data")
     seq = in_view_only(sequence_io.load(converted(out, data, fps, object_scale, object_distance_m, object_position)))
-    xcorr_ms = xcorr_offset_ms(data)
-    doubtful = doubtful_truth(seq, data, xcorr_ms)
+    xcorr_ms, jumps_s = truth_timing(data)
+    doubtful = doubtful_truth(seq, jumps_s, xcorr_ms)
     variants = dict(VARIANTS) | (dict([tracker]) if tracker else {})
     rows, series, accounts = [], {}, {}
     with common.OracleBackend(noise_seed=seed, in_process=in_process) as oracle, \
@@ -87,25 +87,28 @@ def run(out: Path, data: Path = DEFAULT_DATA, seed: int = 0, in_process: bool = 
     return rows
 
 
-def xcorr_offset_ms(data: Path) -> float:
-    """The camera-IMU time offset of the recording by cross-correlating its gyroscope with its ground truth's
-    angular rate (`flextrack.calibration.imu`), ms: what the filter's online estimate is judged against."""
+def truth_timing(data: Path) -> tuple[float, np.ndarray]:
+    """From one read of the recording in `data`: its camera-IMU time offset, ms, by cross-correlating its gyroscope
+    with its ground truth's angular rate (what the filter's online estimate is judged against; nan without a
+    clear peak), and the moments its truth jumped where the gyro did not (s, the IMU's clock;
+    `flextrack.calibration.imu`)."""
     from flextrack.calibration import imu as calibration
 
     imu, gt = calibration.recording(data)
-    return calibration.time_offset(imu, gt)[0] * 1e3 if len(gt.t_ns) > 2 else float("nan")
+    if len(gt.t_ns) <= 2:
+        return float("nan"), np.zeros(0)
+    offset_s = calibration.time_offset(imu, gt)[0]
+    return offset_s * 1e3, calibration.truth_jumps(imu, gt, offset_s if np.isfinite(offset_s) else 0.0)
 
 
-def doubtful_truth(seq, data: Path, offset_ms: float) -> frozenset[int]:
+def doubtful_truth(seq, jumps_s: np.ndarray, offset_ms: float) -> frozenset[int]:
     """Ids of the frames in view within [-DOUBTFUL_BEFORE_S, DOUBTFUL_AFTER_S] of a moment the recording's truth
-    jumped where its gyro did not (a motion capture swapping or losing markers): scored there, a tracker that
-    follows the phone's own IMU is scored against a pose the device never had (`nexus5_ar_b` at 92.7 s: the
-    truth turned ~1 deg in 25 ms, the gyro did not; FINE frames 17 px "off" until the oracle's answers, made
-    from that truth, re-initialised the filter)."""
-    from flextrack.calibration import imu as calibration
-
+    jumped where its gyro did not (`jumps_s`, the IMU's clock, `truth_timing`; a motion capture swapping or
+    losing markers): scored there, a tracker that follows the phone's own IMU is scored against a pose the
+    device never had (`nexus5_ar_b` at 92.7 s: the truth turned ~1 deg in 25 ms, the gyro did not; FINE frames
+    17 px "off" until the oracle's answers, made from that truth, re-initialised the filter)."""
     offset_s = offset_ms * 1e-3 if np.isfinite(offset_ms) else 0.0
-    jumps_ns = (calibration.truth_jumps(data, offset_s) - offset_s) * 1e9  # on the camera's clock
+    jumps_ns = (np.asarray(jumps_s) - offset_s) * 1e9  # on the camera's clock
     if not len(jumps_ns):
         return frozenset()
     t = seq.frame_times_ns.astype(float)
