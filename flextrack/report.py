@@ -474,12 +474,13 @@ def render_region_lmo(folder: Path) -> str:
             continue
         for level, result in json.loads(path.read_text())["levels"].items():
             answers = result["answers"]
-            seen = [a for a in answers if (a["visib"] or 0) >= 0.3]
+            min_v = REGION_GOALS.get(level, (0.3, "-"))[0]
+            seen = [a for a in answers if (a["visib"] or 0) >= min_v]
             halves = _halves(answers)
             odd = [a for a in seen if (a["scene"], a["frame"]) in halves["odd"]]
             even = [a for a in seen if (a["scene"], a["frame"]) in halves["even"]]
             goal = "none OK > 20 px" if name.endswith("_flip") else ""
-            lines.append(f"| {level}, {label} | {len(seen)} | >= 30 % | {_share(seen, _under_5)} | "
+            lines.append(f"| {level}, {label} | {len(seen)} | >= {100 * min_v:.0f} % | {_share(seen, _under_5)} | "
                          f"{_share(even, _under_5)} | {_share(odd, _under_5)} | {goal} | **{_share(seen, _ok_wrong, True)}** |")
     first = next(iter(main["levels"]))
     objects = [("| object | instances >= 30 % visible | < 5 px | ADD(-S) 10 % | OK yet > 20 px off (of the OK answers) "
@@ -499,10 +500,42 @@ def render_region_lmo(folder: Path) -> str:
     docs = {p.name: json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))}
     sources = [f"- `{name}`: " + provenance_line(doc, doc.get("command")).removeprefix("Source: ")
                for name, doc in docs.items()]
-    return "\n".join([*lines, "", (f"Per object, {first}, instances at least 30 % visible (NEES: chi-square(6), "
+    return "\n".join([*lines, "", *_colour_ceiling(folder, main), (f"Per object, {first}, instances at least 30 % "
+                      "visible (NEES: chi-square(6), "
                       "mean 6, median 5.35; against the nearest symmetric pose):"), "", *objects, "",
                       f"Per visibility band, {first}, every instance:", "", *bands, "", *_centre_lean(answers),
                       "Sources:", *sources, f"Files: `{RESULTS_DIR.as_posix()}/{folder.name}/`."])
+
+
+COLOUR_CEILING = (("lmo_region", "served", "the prior's outline"),
+                  ("lmo_region_colours_at_truth", "served", "**the true outline** (oracle)"),
+                  ("lmo_region_m3t_like", "M3T's (`m3t_like.toml`)", "the prior's outline"),
+                  ("lmo_region_m3t_like_colours_at_truth", "M3T's (`m3t_like.toml`)", "**the true outline** (oracle)"))
+
+
+def _colour_ceiling(folder: Path, main: dict) -> list[str]:
+    """What the colour model costs: region's share under 5 px with its served settings and with M3T's, its first
+    colours learned at the prior's outline (as served) or at the true one (`--colours-at-truth`), per prior level,
+    with the goals under them (a table and a blank line; none before every run is stored)."""
+    runs = [(json.loads((folder / f"{name}.json").read_text()), settings, colours)
+            for name, settings, colours in COLOUR_CEILING if (folder / f"{name}.json").is_file()]
+    if len(runs) < len(COLOUR_CEILING):
+        return []
+    levels = list(main["levels"])
+
+    def cell(doc: dict, level: str) -> str:
+        min_v = REGION_GOALS.get(level, (0.3, "-"))[0]
+        seen = [a for a in doc["levels"][level]["answers"] if (a["visib"] or 0) >= min_v]
+        return _share(seen, _under_5)
+
+    head = " | ".join(f"{level}, >= {100 * REGION_GOALS.get(level, (0.3, '-'))[0]:.0f} % visible" for level in levels)
+    out = [f"| settings | first colours learned at | {head} |", "|---|---|" + "---:|" * len(levels)]
+    out += [f"| {settings} | {colours} | " + " | ".join(cell(doc, level) for level in levels) + " |"
+            for doc, settings, colours in runs]
+    out.append("| goal | | " + " | ".join(REGION_GOALS.get(level, (0.3, "-"))[1] for level in levels) + " |")
+    return [("Under 5 px, with the colours learned at the prior's outline (as served) or at the true outline (an "
+             "oracle: `--colours-at-truth`), region's served settings and M3T's (every instance a fresh session, the "
+             "same priors):"), "", *out, ""]
 
 
 def _centre_lean(answers: list[dict]) -> list[str]:

@@ -89,6 +89,13 @@ def test_the_command_writes_why_an_estimator_cannot_run(tmp_path, capsys):
     assert doc["options"]["draws"] == 1 and doc["seeds"]["seed"] == 0 and doc["frames"] == 1
 
 
+def test_the_colours_at_truth_oracle_is_refused_for_an_estimator_that_is_not_region(tmp_path, capsys):
+    root = bop_folder(tmp_path / "bop", frames=1)
+    rc = flextrack_main(["evaluate", "prior", "--bop", str(root), "--obj-id", "7", "--estimator", "pnp",
+                         "--draws", "1", "--colours-at-truth"])
+    assert rc == 1 and "--colours-at-truth is an oracle for a 'region' estimator" in capsys.readouterr().out
+
+
 def test_symmetric_objects_score_against_the_nearest_symmetric_pose(tmp_path):
     """An answer that is the truth turned by one of the object's symmetries scores 0 px; without the symmetry it
     is far off. The flipped prior is the same place in the image, upside down."""

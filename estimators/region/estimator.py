@@ -218,6 +218,13 @@ class RegionEstimator(Estimator):
         shift_px = np.array([dx - reach, dy - reach], dtype=float)
         return np.array([shift_px[0] * t0[2] / K[0, 0], shift_px[1] * t0[2] / K[1, 1], 0.0])
 
+    def _first_colour_outline(self, model: ViewpointModel, K: np.ndarray, shape: tuple[int, int], prior_lines,
+                              margins: list[float]) -> tuple:
+        """Where a fit's first colours are learned: (lines, (margin inside, margin outside)), the start's outline
+        that far off it. (`flextrack evaluate prior --colours-at-truth` learns them at the true outline instead, to
+        measure what the colour model costs.)"""
+        return prior_lines, margins
+
     def _fit(self, frame, shape, K, model, hist, R0, t0, information, prior_px, margin_factors, start=None,
              prior_at_start: bool = False):
         """(score, confidence, result, lines at the result): this frame's own histograms from the outline at
@@ -239,7 +246,7 @@ class RegionEstimator(Estimator):
         prior_lines = project_lines(model, R_s, t_s, K, shape)
         if prior_lines is None:
             return -1.0, -1.0, None, None
-        work = frame_histograms(prior_lines, margins, self.unmix)
+        work = frame_histograms(*self._first_colour_outline(model, K, shape, prior_lines, margins), self.unmix)
         start = (R_s, t_s)
         if self.coarse_search:
             start = (R_s, t_s + self._coarse_shift(frame, work, prior_lines, prior_px, K, t_s))

@@ -15,7 +15,9 @@ the answers' covariances (against the nearest symmetric pose); per answer, also 
 centre in the image against the truth (`centre_offset_px`: a lean shows there). Draw d of every level runs as one
 session per object through the frames in order (the colour histograms carry over, as on a device),
 unless `--fresh` starts every instance afresh. `--part even|odd` keeps every other frame of each
-scene, so that settings tuned on one half are scored on the other.
+scene, so that settings tuned on one half are scored on the other. `--colours-at-truth` is an oracle: region's
+fits learn their first colours at the true outline (flextrack.evaluation.colours_at_truth), which says what
+region's colour model costs it.
 
 The estimator is any [[estimators]] entry of a service config, rebound to the folder's object: its
 `objects` (and those of the entries it names) become the BOP object. An entry that cannot be built
@@ -151,8 +153,9 @@ def perturb(T: np.ndarray, level: PriorLevel, rng: np.random.Generator) -> np.nd
     return P
 
 
-def build_for_object(config: Path, name: str, object_id: str, model_path: Path):
-    """(estimator, None) or (None, why not): the config's entry `name`, its objects rebound."""
+def build_for_object(config: Path, name: str, object_id: str, model_path: Path, region_class=None):
+    """(estimator, None) or (None, why not): the config's entry `name`, its objects rebound; with `region_class`,
+    every `region` entry built as that subclass (the `--colours-at-truth` oracle)."""
     from estimators.objects import ObjectRegistry, load_object
     from estimators.registry import EstimatorSpec, build_estimator
     from flextrack.assets import resolve
@@ -167,7 +170,8 @@ def build_for_object(config: Path, name: str, object_id: str, model_path: Path):
                              model=resolve(entry["model"], base_dir) if "model" in entry else None,
                              params=dict(entry.get("params", {})), base_dir=base_dir, built=dict(built))
         try:
-            built[entry_name] = build_estimator(spec)
+            built[entry_name] = (region_class.from_spec(spec) if region_class is not None and spec.kind == "region"
+                                 else build_estimator(spec))
         except Exception as exc:  # noqa: BLE001 - reported, not raised: the point is to say why
             errors[entry_name] = f"{type(exc).__name__}: {exc}"
         if entry_name == name:
@@ -208,6 +212,7 @@ def evaluate(targets: dict[int, Target], frames: list[Frame], levels: list[Prior
              width: int, height: int, fresh: bool = False, flip: bool = False, progress=None) -> dict:
     """Per level: {"summary", "by_object", "by_visib", "answers"} (see the module's docstring)."""
     from estimators.base import EstimateInput, EstimatorError, Status
+    from flextrack.evaluation.colours_at_truth import ColoursAtTruth
     from flextrack.evaluation.nees_calibration import nees
     from flextrack.wire import pose_error
 
@@ -230,6 +235,8 @@ def evaluate(targets: dict[int, Target], frames: list[Frame], levels: list[Prior
                 inp = EstimateInput(frame_id=fi, capture_time_ns=0, object_id=target.object_id, session_id=session,
                                     camera=camera, image=images[f.rgb_path], prior_T_CO=prior,
                                     prior_covariance=None if prior is None else level.covariance)
+                if isinstance(target.estimator, ColoursAtTruth):
+                    target.estimator.truth_T_CO = f.T_gt
                 start, cpu_start = time.perf_counter(), time.process_time()
                 try:
                     ans = target.estimator.estimate(inp)
@@ -313,6 +320,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--flip", action="store_true",
                         help="turn every prior 180 deg about the camera's ray through the object (still claiming "
                              "the level's sigmas): a badly wrong prior the estimator should refuse")
+    parser.add_argument("--colours-at-truth", action="store_true",
+                        help="an oracle: every region fit learns its first colours at the true outline instead of "
+                             "its start's (what region reaches when its colour model is right; never served)")
     parser.add_argument("--out", type=Path, default=None, help="result JSON (default: print only)")
 
 
@@ -384,9 +394,15 @@ def run(args: argparse.Namespace) -> int:
         "object_id": f"obj_{present[0]:06d}" if len(present) == 1 else [f"obj_{o:06d}" for o in present],
     }
     targets, errors = {}, []
+    region_class = None
+    if args.colours_at_truth:
+        from flextrack.evaluation.colours_at_truth import ColoursAtTruth
+        region_class = ColoursAtTruth
     for oid in present:
         object_id, model_path = f"obj_{oid:06d}", args.bop / "models" / f"obj_{oid:06d}.ply"
-        estimator, error = build_for_object(args.config, args.estimator, object_id, model_path)
+        estimator, error = build_for_object(args.config, args.estimator, object_id, model_path, region_class)
+        if estimator is not None and region_class is not None and not isinstance(estimator, region_class):
+            estimator, error = None, "--colours-at-truth is an oracle for a 'region' estimator; this one is not"
         if estimator is None:
             errors.append(error)
             print(f"{args.estimator} cannot run on {object_id}: {error}")
