@@ -451,14 +451,15 @@ def render_region_lmo(folder: Path) -> str:
     half settings were tuned on and the half they were not, per visibility band and per object."""
     from scipy.stats import chi2
 
-    main = json.loads((folder / "lmo_region.json").read_text())
+    docs = {p.stem: json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))}  # each file read once
+    main = docs["lmo_region"]
     lines = [("| prior (per axis) | instances | visible | < 5 px: all frames | tune half (even) | held-out half (odd) "
              "| goal | OK yet > 20 px off |"), "|---|---:|---|---:|---:|---:|---:|---:|"]
     for level, result in main["levels"].items():
         answers = result["answers"]
         halves = _halves(answers)
         min_v, goal = REGION_GOALS.get(level, (0.3, "-"))
-        seen = [a for a in answers if (a["visib"] or 0) >= min_v]
+        seen = _seen(answers, level)
         part = {k: [a for a in seen if (a["scene"], a["frame"]) in v] for k, v in halves.items()}
         lines.append(f"| {level} | {len(seen)} | >= {100 * min_v:.0f} % | **{_share(seen, _under_5, True)}** | "
                      f"{_share(part['even'], _under_5)} | **{_share(part['odd'], _under_5, True)}** | {goal} | "
@@ -469,13 +470,12 @@ def render_region_lmo(folder: Path) -> str:
     for name, label in (("lmo_region_flip", "prior turned 180 deg (`--flip`)"),
                         ("lmo_region_no_flip_check", "flip check off (`no_flip_check.toml`)"),
                         ("lmo_region_no_flip_check_flip", "prior turned 180 deg, flip check off")):
-        path = folder / f"{name}.json"
-        if not path.is_file():
+        if name not in docs:
             continue
-        for level, result in json.loads(path.read_text())["levels"].items():
+        for level, result in docs[name]["levels"].items():
             answers = result["answers"]
             min_v = REGION_GOALS.get(level, (0.3, "-"))[0]
-            seen = [a for a in answers if (a["visib"] or 0) >= min_v]
+            seen = _seen(answers, level)
             halves = _halves(answers)
             odd = [a for a in seen if (a["scene"], a["frame"]) in halves["odd"]]
             even = [a for a in seen if (a["scene"], a["frame"]) in halves["even"]]
@@ -497,10 +497,9 @@ def render_region_lmo(folder: Path) -> str:
     for band, summary in main["levels"][first]["by_visib"].items():
         bands.append(f"| {band} | {summary['answers']} | {100 * summary['share_proj_5px']:.1f} % | "
                      f"{100 * summary['share_ok_wrong']:.1f} % |")
-    docs = {p.name: json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))}
-    sources = [f"- `{name}`: " + provenance_line(doc, doc.get("command")).removeprefix("Source: ")
+    sources = [f"- `{name}.json`: " + provenance_line(doc, doc.get("command")).removeprefix("Source: ")
                for name, doc in docs.items()]
-    return "\n".join([*lines, "", *_colour_ceiling(folder, main), (f"Per object, {first}, instances at least 30 % "
+    return "\n".join([*lines, "", *_colour_ceiling(docs), (f"Per object, {first}, instances at least 30 % "
                       "visible (NEES: chi-square(6), "
                       "mean 6, median 5.35; against the nearest symmetric pose):"), "", *objects, "",
                       f"Per visibility band, {first}, every instance:", "", *bands, "", *_centre_lean(answers),
@@ -513,20 +512,24 @@ COLOUR_CEILING = (("lmo_region", "served", "the prior's outline"),
                   ("lmo_region_m3t_like_colours_at_truth", "M3T's (`m3t_like.toml`)", "**the true outline** (oracle)"))
 
 
-def _colour_ceiling(folder: Path, main: dict) -> list[str]:
+def _seen(answers: list[dict], level: str) -> list[dict]:
+    """The answers on instances at least as visible as the level's goal asks (REGION_GOALS; 30 % by default)."""
+    min_v = REGION_GOALS.get(level, (0.3, "-"))[0]
+    return [a for a in answers if (a["visib"] or 0) >= min_v]
+
+
+def _colour_ceiling(docs: dict[str, dict]) -> list[str]:
     """What the colour model costs: region's share under 5 px with its served settings and with M3T's, its first
     colours learned at the prior's outline (as served) or at the true one (`--colours-at-truth`), per prior level,
-    with the goals under them (a table and a blank line; none before every run is stored)."""
-    runs = [(json.loads((folder / f"{name}.json").read_text()), settings, colours)
-            for name, settings, colours in COLOUR_CEILING if (folder / f"{name}.json").is_file()]
-    if len(runs) < len(COLOUR_CEILING):
+    with the goals under them (a table and a blank line; none before every run is stored). `docs`: the folder's
+    results by file stem."""
+    if any(name not in docs for name, _, _ in COLOUR_CEILING):
         return []
-    levels = list(main["levels"])
+    runs = [(docs[name], settings, colours) for name, settings, colours in COLOUR_CEILING]
+    levels = list(docs["lmo_region"]["levels"])
 
     def cell(doc: dict, level: str) -> str:
-        min_v = REGION_GOALS.get(level, (0.3, "-"))[0]
-        seen = [a for a in doc["levels"][level]["answers"] if (a["visib"] or 0) >= min_v]
-        return _share(seen, _under_5)
+        return _share(_seen(doc["levels"][level]["answers"], level), _under_5)
 
     head = " | ".join(f"{level}, >= {100 * REGION_GOALS.get(level, (0.3, '-'))[0]:.0f} % visible" for level in levels)
     out = [f"| settings | first colours learned at | {head} |", "|---|---|" + "---:|" * len(levels)]
